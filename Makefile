@@ -1,0 +1,41 @@
+# The README's two commands: `make book` and `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+SCALE  ?= small
+SEED   ?= 0
+
+.PHONY: book test venv bench lock clean
+
+venv: $(VENV)/.installed
+
+$(VENV)/.installed: requirements.lock pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit("qdnb needs Python 3.11 or newer (make ... PYTHON=python3.11)" if sys.version_info < (3, 11) else 0)'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -r requirements.lock
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
+	touch $@
+
+## Execute every notebook at SCALE (tiny | small | paper), then render book/_build/html.
+book: venv
+	$(BIN)/python -m qdnb book --scale $(SCALE) --seed $(SEED)
+
+## Unit tests, then every notebook at tiny scale.
+test: venv
+	$(BIN)/python -m pytest
+
+## Throughput benchmarks (JSON in bench/results/); not part of the tests.
+bench: venv
+	$(BIN)/python bench/rollout.py
+
+## Re-resolve requirements.lock from pyproject.toml's pinned direct dependencies.
+lock:
+	rm -rf .lock-venv
+	$(PYTHON) -m venv .lock-venv
+	.lock-venv/bin/python -m pip install --quiet --disable-pip-version-check .
+	{ echo '# Full pinned dependency set of qdnb (Linux x86-64, CPython 3.11), from `make lock`.'; \
+	  .lock-venv/bin/python -m pip freeze --exclude qdnb; } > requirements.lock
+	rm -rf .lock-venv
+
+clean:
+	rm -rf book/_build book/chapters book/_status.md book/_extra
