@@ -1,0 +1,26 @@
+"""Environments of the book, behind one registry: ``make_env(name, **kwargs)``."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from qdnb.envs.base import Env, EnvState
+from qdnb.envs.pointmaze import PointMaze
+
+_REGISTRY: dict[str, Callable[..., Env]] = {
+    "pointmaze": PointMaze,
+}
+
+
+def env_names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def make_env(name: str, **kwargs) -> Env:
+    """Build a registered environment, e.g. ``make_env("pointmaze", episode_length=200)``."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown environment {name!r}; valid names: {', '.join(env_names())}")
+    return _REGISTRY[name](**kwargs)
+
+
+__all__ = ["Env", "EnvState", "PointMaze", "env_names", "make_env"]

@@ -1,0 +1,1 @@
+"""Quality-diversity: tessellations, repertoires, variation, metrics and loops."""

@@ -1,0 +1,221 @@
+"""Three ways to search a space of neural-network policies under one budget:
+
+- ``GeneticAlgorithm``: a fitness-driven (mu + lambda) evolutionary algorithm
+  (Section 2.2.1): keep the ``population_size`` fittest of parents and offspring;
+- ``NoveltySearch``: the same loop where the novelty of Eq. 2.5 replaces the
+  fitness (Lehman and Stanley, 2011a), with a novelty archive;
+- ``MapElites``: Algorithm 1, uniform selection from a repertoire whose cells each
+  keep their best solution.
+
+All three use the same evaluation (one episode per policy) and the same
+iso+line variation, so they differ only in what they select and keep.  Each has
+``init(key) -> (state, evaluation)`` and ``step(state) -> (state, evaluation)``,
+pure functions ready for ``jit``, ``vmap`` over seeds and ``lax.scan``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from qdnb.envs.base import Env
+from qdnb.envs.rollout import Evaluation, evaluate_policies
+from qdnb.qd import repertoire as rep_lib
+from qdnb.qd.metrics import qd_metrics
+from qdnb.qd.novelty import NoveltyArchive, knn_novelty
+from qdnb.qd.variation import isoline_variation
+from qdnb.rl.networks import MLP, init_policies
+
+take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)
+concat = lambda a, b: jax.tree.map(lambda x, y: jnp.concatenate([x, y]), a, b)
+
+
+@dataclass(frozen=True, eq=False)
+class PolicySearch:
+    """What the three algorithms share: the task, the policy network, the batch
+    of offspring evaluated per iteration and the iso+line variation."""
+
+    env: Env
+    network: MLP
+    batch_size: int
+    iso_sigma: float
+    line_sigma: float
+
+    def evaluate(self, params: Any, key: jax.Array) -> Evaluation:
+        return evaluate_policies(self.env, self.network.apply, params, key)
+
+    def random_policies(self, key: jax.Array) -> Any:
+        return init_policies(self.network, key, self.batch_size, self.env.observation_size)
+
+    def vary(self, parents: Any, key: jax.Array) -> Any:
+        """Offspring of ``batch_size`` pairs of parents drawn uniformly from ``parents``."""
+        k1, k2, k3 = jax.random.split(key, 3)
+        n = jax.tree.leaves(parents)[0].shape[0]
+        x1 = take(parents, jax.random.randint(k1, (self.batch_size,), 0, n))
+        x2 = take(parents, jax.random.randint(k2, (self.batch_size,), 0, n))
+        return isoline_variation(x1, x2, k3, self.iso_sigma, self.line_sigma)
+
+
+@struct.dataclass
+class PopulationState:
+    population: Any
+    fitnesses: jax.Array
+    descriptors: jax.Array
+    key: jax.Array
+    archive: NoveltyArchive | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class GeneticAlgorithm(PolicySearch):
+    """Fitness-only (mu + lambda) GA: the baseline that the deceptive maze traps."""
+
+    population_size: int = 100
+
+    def init(self, key: jax.Array) -> tuple[PopulationState, Evaluation]:
+        k_init, k_eval, key = jax.random.split(key, 3)
+        params = self.random_policies(k_init)
+        ev = self.evaluate(params, k_eval)
+        keep = jax.lax.top_k(ev.fitness, self.population_size)[1]
+        return PopulationState(take(params, keep), ev.fitness[keep], ev.descriptor[keep], key), ev
+
+    def step(self, state: PopulationState) -> tuple[PopulationState, Evaluation]:
+        key, k_vary, k_eval = jax.random.split(state.key, 3)
+        offspring = self.vary(state.population, k_vary)
+        ev = self.evaluate(offspring, k_eval)
+        pool = concat(state.population, offspring)
+        fit = jnp.concatenate([state.fitnesses, ev.fitness])
+        desc = jnp.concatenate([state.descriptors, ev.descriptor])
+        keep = jax.lax.top_k(fit, self.population_size)[1]
+        return PopulationState(take(pool, keep), fit[keep], desc[keep], key), ev
+
+    def metrics(self, state: PopulationState) -> dict[str, jax.Array]:
+        return {"max_fitness": jnp.max(state.fitnesses)}
+
+
+@dataclass(frozen=True, eq=False)
+class NoveltySearch(PolicySearch):
+    """Novelty Search: keep the ``population_size`` most novel of parents and
+    offspring, novelty (Eq. 2.5) measured against the archive and the pool; the
+    offspring whose novelty exceeds ``archive_threshold`` join the archive."""
+
+    population_size: int = 100
+    k: int = 15
+    archive_size: int = 5000
+    archive_threshold: float = 0.01
+
+    def _most_novel(self, pool, fit, desc, archive, key):
+        reference = jnp.concatenate([desc, archive.data])
+        valid = jnp.concatenate([jnp.ones(desc.shape[0], bool), archive.valid])
+        novelty = knn_novelty(desc, reference, self.k, valid, exclude_self=True)
+        keep = jax.lax.top_k(novelty, self.population_size)[1]
+        return PopulationState(take(pool, keep), fit[keep], desc[keep], key, archive)
+
+    def init(self, key: jax.Array) -> tuple[PopulationState, Evaluation]:
+        k_init, k_eval, key = jax.random.split(key, 3)
+        params = self.random_policies(k_init)
+        ev = self.evaluate(params, k_eval)
+        archive = NoveltyArchive.create(self.archive_size, self.env.descriptor_size)
+        archive = archive.add(ev.descriptor, self.archive_threshold, self.k)
+        return self._most_novel(params, ev.fitness, ev.descriptor, archive, key), ev
+
+    def step(self, state: PopulationState) -> tuple[PopulationState, Evaluation]:
+        key, k_vary, k_eval = jax.random.split(state.key, 3)
+        offspring = self.vary(state.population, k_vary)
+        ev = self.evaluate(offspring, k_eval)
+        archive = state.archive.add(ev.descriptor, self.archive_threshold, self.k)
+        pool = concat(state.population, offspring)
+        fit = jnp.concatenate([state.fitnesses, ev.fitness])
+        desc = jnp.concatenate([state.descriptors, ev.descriptor])
+        return self._most_novel(pool, fit, desc, archive, key), ev
+
+    def metrics(self, state: PopulationState) -> dict[str, jax.Array]:
+        return {"max_fitness": jnp.max(state.fitnesses), "archive_size": state.archive.size}
+
+
+@struct.dataclass
+class MapElitesState:
+    repertoire: rep_lib.Repertoire
+    key: jax.Array
+
+
+@dataclass(frozen=True, eq=False)
+class MapElites(PolicySearch):
+    """MAP-Elites (Algorithm 1) with batched selection, variation and insertion."""
+
+    centroids: jax.Array | None = None
+    fitness_offset: float = 0.0
+
+    def init(self, key: jax.Array) -> tuple[MapElitesState, Evaluation]:
+        k_init, k_eval, key = jax.random.split(key, 3)
+        params = self.random_policies(k_init)
+        ev = self.evaluate(params, k_eval)
+        repertoire = rep_lib.init_repertoire(self.centroids, take(params, 0))
+        repertoire, _ = rep_lib.insert(repertoire, params, ev.fitness, ev.descriptor)
+        return MapElitesState(repertoire, key), ev
+
+    def step(self, state: MapElitesState) -> tuple[MapElitesState, Evaluation]:
+        key, k_sel, k_vary, k_eval = jax.random.split(state.key, 4)
+        parents = rep_lib.sample(state.repertoire, k_sel, self.batch_size)
+        offspring = self.vary(parents, k_vary)
+        ev = self.evaluate(offspring, k_eval)
+        repertoire, _ = rep_lib.insert(state.repertoire, offspring, ev.fitness, ev.descriptor)
+        return MapElitesState(repertoire, key), ev
+
+    def metrics(self, state: MapElitesState) -> dict[str, jax.Array]:
+        return qd_metrics(state.repertoire, self.fitness_offset)
+
+
+def run_seeds(
+    algorithm: GeneticAlgorithm | NoveltySearch | MapElites,
+    keys: jax.Array,
+    num_iterations: int,
+    chunk_size: int,
+    track_bins: tuple[int, ...],
+    target: tuple[float, ...],
+    progress: bool = True,
+    desc: str | None = None,
+):
+    """Run one algorithm for several seeds at once (``vmap`` over ``keys``).
+
+    Besides the algorithm's own metrics, every evaluated descriptor is tracked on
+    a fixed regular grid of ``track_bins`` cells over the environment's
+    descriptor bounds (see ``ExplorationTrack``), with the smallest distance to
+    ``target``.  Returns the final states and a history dict whose arrays have
+    shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the initial batch.
+    """
+    from qdnb.loops import scan_in_chunks
+    from qdnb.qd.metrics import ExplorationTrack
+
+    env = algorithm.env
+    num_cells = int(jnp.prod(jnp.asarray(track_bins)))
+    low, high = env.descriptor_low, env.descriptor_high
+
+    def record(state, track, ev):
+        track = track.update(ev.descriptor, track_bins, low, high, target)
+        out = {"coverage": track.coverage, "min_distance": track.min_distance,
+               "descriptors": ev.descriptor, "fitnesses": ev.fitness, **algorithm.metrics(state)}
+        return track, out
+
+    def init(key):
+        state, ev = algorithm.init(key)
+        track, out = record(state, ExplorationTrack.create(num_cells), ev)
+        return (state, track), out
+
+    def step(carry):
+        state, track = carry
+        state, ev = algorithm.step(state)
+        track, out = record(state, track, ev)
+        return (state, track), out
+
+    carry, first = jax.jit(jax.vmap(init))(keys)
+    (states, tracks), history = scan_in_chunks(
+        jax.vmap(step), carry, num_iterations, chunk_size, desc=desc, progress=progress
+    )
+    history = jax.tree.map(
+        lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history
+    )
+    return states, tracks, history

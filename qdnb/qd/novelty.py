@@ -1,0 +1,87 @@
+"""Novelty (Eq. 2.5) and the fixed-size novelty archive.
+
+The novelty of a descriptor is the mean Euclidean distance to its ``k`` nearest
+neighbours in a reference set (exact neighbours, no approximation).  The archive
+is a FIFO buffer of fixed capacity: a descriptor enters only when its novelty
+with respect to the archive exceeds a threshold (Novelty Search; Section 3.6.3
+for QD-PG's state-descriptor archive).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+def knn_novelty(
+    queries: jax.Array,
+    reference: jax.Array,
+    k: int,
+    reference_valid: jax.Array | None = None,
+    exclude_self: bool = False,
+) -> jax.Array:
+    """Mean distance of each query to its ``k`` nearest valid references (Eq. 2.5).
+
+    With ``exclude_self`` the queries are the first rows of ``reference`` and a
+    query is not its own neighbour.  With fewer than ``k`` valid references the
+    mean is over those there are; with none, the novelty is ``+inf``.
+    """
+    if reference.shape[0] < k:
+        raise ValueError(f"reference set of {reference.shape[0]} rows is smaller than k={k}")
+    # Differences, not the expanded dot-product form: exact zeros for equal points.
+    d = jnp.linalg.norm(queries[:, None, :] - reference[None, :, :], axis=-1)
+    if reference_valid is not None:
+        d = jnp.where(reference_valid[None, :], d, jnp.inf)
+    if exclude_self:
+        q = queries.shape[0]
+        d = d.at[jnp.arange(q), jnp.arange(q)].set(jnp.inf)
+    nearest = -jax.lax.top_k(-d, k)[0]
+    finite = jnp.isfinite(nearest)
+    count = jnp.sum(finite, axis=-1)
+    total = jnp.sum(jnp.where(finite, nearest, 0.0), axis=-1)
+    return jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.inf)
+
+
+@struct.dataclass
+class NoveltyArchive:
+    """FIFO archive of descriptors.  ``num_added`` counts every insertion ever made;
+    slot ``num_added % capacity`` is overwritten next."""
+
+    data: jax.Array
+    num_added: jax.Array
+
+    @classmethod
+    def create(cls, capacity: int, dim: int) -> "NoveltyArchive":
+        return cls(data=jnp.zeros((capacity, dim)), num_added=jnp.zeros((), jnp.int32))
+
+    @property
+    def capacity(self) -> int:
+        return self.data.shape[0]
+
+    @property
+    def valid(self) -> jax.Array:
+        return jnp.arange(self.capacity) < self.num_added
+
+    @property
+    def size(self) -> jax.Array:
+        return jnp.minimum(self.num_added, self.capacity)
+
+    def novelty(self, queries: jax.Array, k: int) -> jax.Array:
+        """Novelty of each query with respect to the archive (Eq. 2.5 / Eq. 3.5)."""
+        return knn_novelty(queries, self.data, k, self.valid)
+
+    def add(self, items: jax.Array, threshold: float, k: int) -> "NoveltyArchive":
+        """Insert items one after the other; an item enters when its novelty with
+        respect to the archive as it stands (earlier items of the batch included)
+        is strictly above ``threshold``."""
+
+        def one(archive, item):
+            nov = archive.novelty(item[None], k)[0]
+            slot = archive.num_added % archive.capacity
+            accept = nov > threshold
+            data = jnp.where(accept, archive.data.at[slot].set(item), archive.data)
+            return archive.replace(data=data, num_added=archive.num_added + accept), accept
+
+        archive, _ = jax.lax.scan(one, self, items)
+        return archive

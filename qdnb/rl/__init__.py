@@ -1,0 +1,1 @@
+"""Networks and reinforcement learning pieces."""

@@ -1,0 +1,21 @@
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from qdnb.loops import scan_in_chunks
+
+
+def test_chunked_scan_equals_one_scan():
+    step = lambda c: (c * 1.5 + 1.0, c)
+    carry, outs = scan_in_chunks(step, jnp.float32(0.0), 7, 3, progress=False)
+    expected, c = [], 0.0
+    for _ in range(7):
+        expected.append(c)
+        c = c * 1.5 + 1.0
+    np.testing.assert_allclose(outs, expected, rtol=1e-6)
+    np.testing.assert_allclose(carry, c, rtol=1e-6)
+
+
+def test_bad_lengths_are_errors():
+    with pytest.raises(ValueError, match="positive"):
+        scan_in_chunks(lambda c: (c, c), 0.0, 0, 3)
