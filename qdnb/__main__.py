@@ -1,0 +1,43 @@
+"""``python -m qdnb``: list notebooks, run them, build the book."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from qdnb import runner
+from qdnb.scale import SCALES
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m qdnb", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("list", help="list notebooks and scales")
+    run = sub.add_parser("run", help="execute notebooks with papermill")
+    run.add_argument("notebooks", nargs="+", metavar="NOTEBOOK")
+    run.add_argument("--scale", default="tiny", help=f"one of {', '.join(SCALES)} (default: tiny)")
+    run.add_argument("--seed", type=int, default=0)
+    book = sub.add_parser("book", help="execute every notebook, then build the HTML book")
+    book.add_argument("--scale", default="small", help=f"one of {', '.join(SCALES)} (default: small)")
+    book.add_argument("--seed", type=int, default=0)
+    book.add_argument("--force", action="store_true", help="re-execute even when an identical execution exists")
+    args = parser.parse_args(argv)
+
+    try:
+        if args.command == "list":
+            print("notebooks:", " ".join(runner.notebook_names()))
+            print("scales:   ", " ".join(SCALES))
+        elif args.command == "run":
+            runner.check_notebooks(args.notebooks)
+            for path in runner.run_notebooks(args.notebooks, args.scale, args.seed):
+                print(f"executed: {path}")
+        elif args.command == "book":
+            print(f"book: {runner.build_book(args.scale, args.seed, force=args.force)}")
+    except (ValueError, runner.NotebookFailed, RuntimeError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1 if not isinstance(err, ValueError) else 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,95 @@
+"""Shared figure style and the plots every chapter uses: repertoire maps (grid
+and CVT alike), quartile curves, and the Point-Maze layout."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+METHOD_COLORS = {"GA": "#7f7f7f", "NS": "#1f77b4", "ME": "#d62728"}
+
+
+def set_style() -> None:
+    """One style for every figure of the book."""
+    plt.rcParams.update({
+        "figure.dpi": 110,
+        "savefig.dpi": 150,
+        "font.size": 9,
+        "axes.titlesize": 10,
+        "axes.spines.top": False,
+        "axes.spines.right": False,
+        "axes.grid": True,
+        "grid.alpha": 0.25,
+        "legend.frameon": False,
+    })
+
+
+def figure_title(fig: plt.Figure, text: str, scale: str) -> None:
+    """Title that names the thesis figure and the scale it was run at."""
+    fig.suptitle(f"{text} — scale: {scale}", fontsize=10)
+
+
+def repertoire_map(
+    ax: plt.Axes,
+    centroids: np.ndarray,
+    values: np.ndarray,
+    low: Sequence[float],
+    high: Sequence[float],
+    resolution: int = 300,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+):
+    """Colour each point of a 2-D descriptor space by the value of its nearest
+    centroid: the Voronoi cells of a CVT, or the squares of a grid.  Cells whose
+    value is not finite (empty) stay white.  Returns the image for a colour bar."""
+    centroids, values = np.asarray(centroids), np.asarray(values, dtype=float)
+    xs = np.linspace(low[0], high[0], resolution)
+    ys = np.linspace(low[1], high[1], resolution)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=-1)
+    cells = np.empty(len(pts), dtype=int)
+    for start in range(0, len(pts), 20_000):  # bounded memory for large tessellations
+        chunk = pts[start:start + 20_000]
+        cells[start:start + 20_000] = np.argmin(((chunk[:, None, :] - centroids[None]) ** 2).sum(-1), axis=1)
+    image = np.where(np.isfinite(values), values, np.nan)[cells].reshape(resolution, resolution)
+    finite = values[np.isfinite(values)]
+    im = ax.imshow(
+        image, origin="lower", extent=(low[0], high[0], low[1], high[1]), cmap=cmap, aspect="auto",
+        vmin=vmin if vmin is not None else (finite.min() if finite.size else None),
+        vmax=vmax if vmax is not None else (finite.max() if finite.size else None),
+        interpolation="nearest",
+    )
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(low[1], high[1])
+    ax.grid(False)
+    return im
+
+
+def quartile_curves(ax: plt.Axes, x: np.ndarray, ys: np.ndarray, label: str, color: str | None = None) -> None:
+    """Median over seeds (rows of ``ys``) with the interquartile range shaded."""
+    ys = np.asarray(ys)
+    q1, med, q3 = np.percentile(ys, [25, 50, 75], axis=0)
+    (line,) = ax.plot(x, med, label=label, color=color)
+    ax.fill_between(x, q1, q3, color=line.get_color(), alpha=0.25, linewidth=0)
+
+
+def draw_pointmaze(ax: plt.Axes) -> None:
+    """Walls, goal zone and start zone of Point-Maze."""
+    from matplotlib.patches import Rectangle
+
+    from qdnb.envs.pointmaze import GOAL, GOAL_HALF_SIDE, WALLS
+
+    for x0, x1, y0, y1 in WALLS:
+        ax.add_patch(Rectangle((x0, y0 - 0.01), x1 - x0, (y1 - y0) + 0.02, color="black", zorder=5))
+    g = GOAL_HALF_SIDE
+    ax.add_patch(Rectangle((GOAL[0] - g, GOAL[1] - g), 2 * g, 2 * g, facecolor="none", edgecolor="limegreen",
+                           linewidth=2, zorder=6, label="goal zone"))
+    ax.add_patch(Rectangle((-0.1, -1.0), 0.2, 0.3, facecolor="none", edgecolor="orange", linestyle="--",
+                           linewidth=1.2, zorder=6, label="start zone"))
+    ax.set_xlim(-1, 1)
+    ax.set_ylim(-1, 1)
+    ax.set_aspect("equal")
+    ax.grid(False)

@@ -1,0 +1,230 @@
+"""Execute notebooks with papermill and build the book with Jupyter Book.
+
+``python -m qdnb list | run NOTEBOOK... --scale S --seed N | book --scale S``.
+Executed copies go to ``data/runs/<scale>/<notebook>/<notebook>.ipynb``, never
+into ``notebooks/``.  An execution is recorded with a fingerprint of everything
+it depended on (the notebook, the ``qdnb`` sources, the lock file, the scale and
+the seed); ``book`` reuses an executed copy only when that fingerprint matches
+and the execution succeeded, and re-executes otherwise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from qdnb import paths
+from qdnb.provenance import atomic_write_json, load_summary
+from qdnb.scale import SCALES, check_scale
+
+# Book order; chapters without a notebook yet are listed as planned.
+CHAPTERS = {
+    "ch2_primer": "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
+    "ch3_qdpg": "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap",
+    "ch4_reproducibility": "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni",
+    "ch4_qdt": "Chapter 4: the Quality-Diversity Transformer",
+    "ch5_flow_lenia": "Chapter 5: the Flow Lenia Transformer",
+}
+
+
+class NotebookFailed(RuntimeError):
+    """A notebook raised during execution; the message names it and the cell."""
+
+
+def notebook_names() -> list[str]:
+    """Notebooks in ``notebooks/``, in book order."""
+    present = {p.stem for p in paths.NOTEBOOKS.glob("*.ipynb")}
+    ordered = [n for n in CHAPTERS if n in present]
+    return ordered + sorted(present - set(ordered))
+
+
+def check_notebooks(names: list[str]) -> list[str]:
+    valid = notebook_names()
+    unknown = [n for n in names if n not in valid]
+    if unknown:
+        raise ValueError(f"unknown notebook(s) {', '.join(map(repr, unknown))}; valid notebooks: {', '.join(valid)}")
+    return names
+
+
+def executed_path(name: str, scale: str) -> Path:
+    return paths.run_dir(scale, name) / f"{name}.ipynb"
+
+
+def fingerprint(name: str, scale: str, seed: int) -> str:
+    """Hash of what an execution depends on: the notebook, every ``qdnb`` source
+    file, the lock file, the scale and the seed."""
+    h = hashlib.sha256(f"{name}|{scale}|{seed}".encode())
+    files = [paths.NOTEBOOKS / f"{name}.ipynb", paths.ROOT / "requirements.lock"]
+    files += sorted((paths.ROOT / "qdnb").rglob("*.py"))
+    for f in files:
+        if f.exists():
+            h.update(str(f.relative_to(paths.ROOT)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _kernel_path() -> str:
+    """A ``python3`` kernel spec that runs this very interpreter, put first on
+    ``JUPYTER_PATH``, so that a user-level kernel of another Python never runs
+    the notebooks."""
+    kdir = paths.RUNS / ".jupyter" / "kernels" / "python3"
+    spec = {
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": "Python 3 (qdnb)",
+        "language": "python",
+        "env": {"PYTHONPATH": os.pathsep.join(filter(None, [str(paths.ROOT), os.environ.get("PYTHONPATH")]))},
+    }
+    atomic_write_json(kdir / "kernel.json", spec)
+    return str(kdir.parent.parent)
+
+
+def execute(source: Path, output: Path, parameters: dict, label: str, progress: bool = True) -> Path:
+    """Run ``source`` with papermill into ``output``; raise ``NotebookFailed`` naming
+    the notebook and the failing cell, leaving the partly executed copy."""
+    import papermill as pm
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    env_before = os.environ.get("JUPYTER_PATH")
+    os.environ["JUPYTER_PATH"] = os.pathsep.join(filter(None, [_kernel_path(), env_before]))
+    try:
+        pm.execute_notebook(
+            str(source), str(output), parameters=parameters, kernel_name="python3",
+            cwd=str(source.parent), progress_bar=progress, log_output=False,
+        )
+    except pm.PapermillExecutionError as err:
+        first_line = (err.source or "").strip().splitlines()[:1]
+        raise NotebookFailed(
+            f"notebook {label!r} failed in cell {err.cell_index} (execution count {err.exec_count}"
+            f"{', starting ' + repr(first_line[0]) if first_line else ''}): {err.ename}: {err.evalue}\n"
+            f"partly executed copy left at {output}"
+        ) from None
+    finally:
+        if env_before is None:
+            os.environ.pop("JUPYTER_PATH", None)
+        else:
+            os.environ["JUPYTER_PATH"] = env_before
+    return output
+
+
+def run_notebook(name: str, scale: str, seed: int = 0, reuse: bool = False, progress: bool = True) -> Path:
+    """Execute one notebook at ``scale``; with ``reuse``, keep an earlier execution
+    whose fingerprint matches.  Returns the executed copy."""
+    check_notebooks([name])
+    check_scale(scale)
+    out = executed_path(name, scale)
+    record_path = out.parent / "execution.json"
+    fp = fingerprint(name, scale, seed)
+    if reuse and out.exists() and record_path.exists():
+        record = json.loads(record_path.read_text())
+        if record.get("fingerprint") == fp and record.get("status") == "ok":
+            return out
+    record_path.unlink(missing_ok=True)
+    start = time.time()
+    execute(paths.NOTEBOOKS / f"{name}.ipynb", out, {"scale": scale, "seed": seed}, name, progress)
+    atomic_write_json(record_path, {"fingerprint": fp, "status": "ok", "seed": seed,
+                                    "execution_wall_time_s": round(time.time() - start, 2)})
+    return out
+
+
+def run_notebooks(names: list[str], scale: str, seed: int = 0, reuse: bool = False,
+                  progress: bool = True) -> list[Path]:
+    check_notebooks(names)
+    check_scale(scale)
+    return [run_notebook(n, scale, seed, reuse, progress) for n in names]
+
+
+def status_table(scale: str) -> str:
+    """The reproduction-status table of the intro page, read from the runs' summaries."""
+    lines = [
+        f"Built at scale **{scale}**.",
+        "",
+        "| chapter | notebook | status at this scale | wall time | headline |",
+        "|---|---|---|---|---|",
+    ]
+    present = set(notebook_names())
+    for name, title in CHAPTERS.items():
+        summary = load_summary(scale, name) if name in present else None
+        if name not in present:
+            lines.append(f"| {title} | — | planned, not yet in the book | — | — |")
+        elif summary is None:
+            lines.append(f"| {title} | [{name}](chapters/{name}) | no summary written | — | — |")
+        else:
+            headline = summary.get("results", {}).get("headline", "")
+            lines.append(f"| {title} | [{name}](chapters/{name}) | ran (seed {summary['seed']}, "
+                         f"git {summary['git_sha'][:12]}) | {summary['wall_time_s']:.0f} s | {headline} |")
+    return "\n".join(lines) + "\n"
+
+
+def copy_mathjax(extra_dir: Path) -> None:
+    """MathJax 3, served from the book itself (no CDN).
+
+    It goes to ``book/_extra/_static/mathjax`` (``html_extra_path``), not to
+    ``book/_static``, whose every ``.js`` file Jupyter Book would load on every page.
+    """
+    import mathjax  # the django-static-mathjax distribution
+
+    src = Path(mathjax.__file__).parent / "static" / "mathjax" / "es5"
+    dst = extra_dir / "_static" / "mathjax"
+    if not (dst / "tex-chtml.js").exists():
+        shutil.copytree(src, dst, dirs_exist_ok=True)
+
+
+_EXTERNAL = [
+    re.compile(r"<script[^>]*\ssrc=[\"'](?:https?:)?//", re.I),
+    re.compile(r"<link[^>]*\shref=[\"'](?:https?:)?//[^>]*>", re.I),
+    re.compile(r"<(?:img|iframe)[^>]*\ssrc=[\"'](?:https?:)?//", re.I),
+    re.compile(r"url\(\s*[\"']?(?:https?:)?//", re.I),
+]
+
+
+def external_resources(html_dir: Path) -> list[str]:
+    """Resources a rendered page would fetch from the network (scripts, styles,
+    fonts, images); plain hyperlinks are allowed."""
+    found = []
+    for f in sorted(html_dir.rglob("*")):
+        if f.suffix not in {".html", ".css"}:
+            continue
+        text = f.read_text(errors="ignore")
+        for pattern in _EXTERNAL:
+            for m in pattern.finditer(text):
+                tag = m.group(0)
+                if tag.lower().startswith("<link") and not re.search(r"rel=[\"'](stylesheet|preload|icon|modulepreload)", tag, re.I):
+                    continue
+                found.append(f"{f.relative_to(html_dir)}: {tag[:120]}")
+    return found
+
+
+def build_book(scale: str, seed: int = 0, force: bool = False, progress: bool = True) -> Path:
+    """Execute every notebook at ``scale`` (reusing matching executions unless
+    ``force``), then render ``book/_build/html``.  Returns the index page."""
+    check_scale(scale)
+    names = notebook_names()
+    executed = run_notebooks(names, scale, seed, reuse=not force, progress=progress)
+    chapters = paths.BOOK / "chapters"
+    shutil.rmtree(chapters, ignore_errors=True)
+    chapters.mkdir(parents=True)
+    for name, path in zip(names, executed):
+        shutil.copy(path, chapters / f"{name}.ipynb")
+    (paths.BOOK / "_status.md").write_text(status_table(scale))
+    copy_mathjax(paths.BOOK / "_extra")
+    exe = Path(sys.executable).parent / "jupyter-book"
+    cmd = [str(exe) if exe.exists() else "jupyter-book", "build", str(paths.BOOK), "--keep-going", "-W"]
+    proc = subprocess.run(cmd, cwd=paths.ROOT)
+    if proc.returncode != 0:
+        raise RuntimeError(f"jupyter-book build failed (exit {proc.returncode}): {' '.join(cmd)}")
+    html = paths.BOOK / "_build" / "html"
+    external = external_resources(html)
+    if external:
+        raise RuntimeError("the rendered book would fetch resources from the network:\n  " + "\n  ".join(external[:20]))
+    return html / "index.html"
+
+
+__all__ = ["SCALES", "CHAPTERS", "NotebookFailed", "build_book", "run_notebook", "run_notebooks",
+           "notebook_names", "check_notebooks", "execute", "fingerprint", "external_resources"]

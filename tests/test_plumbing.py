@@ -1,0 +1,152 @@
+import json
+import re
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import nbformat
+import pytest
+
+from qdnb import paths, runner, scale, thesis
+from qdnb.provenance import Run, atomic_write_json, load_arrays, save_arrays, to_jsonable
+
+ROOT = paths.ROOT
+
+
+def test_unknown_scale_or_chapter_lists_valid_names():
+    with pytest.raises(ValueError, match="valid scales: tiny, small, paper"):
+        scale.config("ch2_primer", "huge")
+    with pytest.raises(ValueError, match="valid chapters: ch2_primer"):
+        scale.config("ch9", "tiny")
+
+
+def test_configs_are_frozen_and_hash_stably():
+    cfg = scale.config("ch2_primer", "tiny")
+    with pytest.raises(Exception):
+        cfg.batch_size = 3
+    assert scale.config_hash(cfg) == scale.config_hash(scale.config("ch2_primer", "tiny"))
+    assert scale.config_hash(cfg) != scale.config_hash(scale.config("ch2_primer", "small"))
+
+
+def test_cli_rejects_bad_names_before_running_anything():
+    for args, expected in [(["run", "nope", "--scale", "tiny"], "valid notebooks: ch2_primer"),
+                           (["run", "ch2_primer", "--scale", "huge"], "valid scales: tiny, small, paper"),
+                           (["book", "--scale", "huge"], "valid scales")]:
+        proc = subprocess.run([sys.executable, "-m", "qdnb", *args], cwd=ROOT, capture_output=True, text=True)
+        assert proc.returncode == 2, proc.stderr
+        assert expected in proc.stderr
+    out = subprocess.run([sys.executable, "-m", "qdnb", "list"], cwd=ROOT, capture_output=True, text=True)
+    assert "ch2_primer" in out.stdout and "tiny small paper" in out.stdout
+
+
+def test_a_failing_notebook_names_the_cell_and_leaves_the_partial_copy(tmp_path):
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
+                nbformat.v4.new_code_cell("print('before')"),
+                nbformat.v4.new_code_cell("raise RuntimeError('boom ' + scale)")]
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    src, out = tmp_path / "bad.ipynb", tmp_path / "out" / "bad.ipynb"
+    nbformat.write(nb, src)
+    with pytest.raises(runner.NotebookFailed) as err:
+        runner.execute(src, out, {"scale": "small"}, "bad", progress=False)
+    message = str(err.value)
+    assert "'bad'" in message and "raise RuntimeError" in message and "boom small" in message
+    assert out.exists()
+    executed = nbformat.read(out, as_version=4)
+    before = [c for c in executed.cells if c.source == "print('before')"][0]
+    assert before.outputs[0]["text"] == "before\n"  # the cells before the failure ran
+
+
+def test_atomic_json_and_artifacts(tmp_path):
+    path = atomic_write_json(tmp_path / "a" / "x.json", {"v": float("inf"), "t": (1, 2)})
+    assert json.loads(path.read_text()) == {"t": [1, 2], "v": "inf"}
+    assert not [p for p in path.parent.iterdir() if p.name.endswith(".tmp")]
+    import numpy as np
+
+    save_arrays(tmp_path / "r.npz", "abc", f=np.arange(3))
+    assert load_arrays(tmp_path / "r.npz", "abc")["f"].tolist() == [0, 1, 2]
+    assert load_arrays(tmp_path / "r.npz", "other") is None
+    assert load_arrays(tmp_path / "missing.npz", "abc") is None
+    assert to_jsonable({"a": np.float32(2.5), "b": np.array([1, 2])}) == {"a": 2.5, "b": [1, 2]}
+
+
+def test_summary_has_the_required_fields(monkeypatch, tmp_path):
+    monkeypatch.setattr(paths, "RUNS", tmp_path)
+    cfg = scale.config("ch2_primer", "tiny")
+    path = Run("test_nb", "tiny", 3, cfg).finish({"x": 1})
+    summary = json.loads(path.read_text())
+    assert path == tmp_path / "tiny" / "test_nb" / "summary.json"
+    for key in ["notebook", "scale", "seed", "config", "config_hash", "versions", "device", "git_sha",
+                "wall_time_s", "results"]:
+        assert key in summary
+    assert set(summary["versions"]) >= {"python", "jax", "jaxlib", "brax", "flax", "optax"}
+    assert summary["seed"] == 3 and summary["config"]["batch_size"] == cfg.batch_size
+
+
+def test_fingerprint_changes_with_scale_and_seed():
+    a = runner.fingerprint("ch2_primer", "tiny", 0)
+    assert a == runner.fingerprint("ch2_primer", "tiny", 0)
+    assert a != runner.fingerprint("ch2_primer", "small", 0) != runner.fingerprint("ch2_primer", "tiny", 1)
+
+
+def test_offline_check_flags_cdn_resources(tmp_path):
+    (tmp_path / "a.html").write_text('<script src="https://cdn.example/x.js"></script>'
+                                     '<a href="https://example.org">fine</a>'
+                                     '<link rel="stylesheet" href="//fonts.example/css">')
+    (tmp_path / "b.css").write_text("@font-face { src: url('https://fonts.example/f.woff2') }")
+    found = runner.external_resources(tmp_path)
+    assert len(found) == 3
+
+
+def test_toc_lists_every_notebook_and_notebooks_are_clean():
+    toc = (paths.BOOK / "_toc.yml").read_text()
+    listed = re.findall(r"file: chapters/(\w+)", toc)
+    assert listed == runner.notebook_names()
+    for name in listed:
+        nb = nbformat.read(paths.NOTEBOOKS / f"{name}.ipynb", as_version=4)
+        params = [c for c in nb.cells if "parameters" in c.metadata.get("tags", [])]
+        assert len(params) == 1 and "scale = \"tiny\"" in params[0].source and "seed = 0" in params[0].source
+        assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), f"{name} has outputs"
+
+
+def _lock() -> dict[str, str]:
+    pins = {}
+    for line in (ROOT / "requirements.lock").read_text().splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            name, version = line.split("==")
+            pins[name.lower().replace("_", "-")] = version
+    return pins
+
+
+def test_pyproject_lock_and_environment_agree():
+    lock = _lock()
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    for dep in project["dependencies"] + project["optional-dependencies"]["cuda"]:
+        name, version = re.fullmatch(r"([A-Za-z0-9_.\-]+)(?:\[[^\]]+\])?==(.+)", dep).groups()
+        assert lock.get(name.lower().replace("_", "-")) == version, f"{dep} does not match the lock"
+    env = (ROOT / "environment.yml").read_text()
+    assert "-r requirements.lock" in env and "- -e ." in env
+    python = re.search(r"python=(\d+\.\d+)", env).group(1)
+    assert project["requires-python"] == f">={python}"
+    # any other conda package pinned in environment.yml must match the lock
+    for name, version in re.findall(r"^\s*-\s*([A-Za-z0-9_\-]+)=+([\w.]+)\s*$", env, re.M):
+        if name != "python":
+            assert lock.get(name.lower()) == version
+    for name in ["jax", "jaxlib", "brax", "flax", "optax", "papermill", "jupyter-book", "ipykernel", "pytest"]:
+        assert name in lock
+
+
+def test_thesis_tables_are_transcribed():
+    t34 = thesis.table("3.4")
+    assert len(t34) == 36 and set(t34.environment) == {"Point-Maze", "Ant-Maze", "Ant-Trap"}
+    assert t34.query("algorithm == 'QD-PG' and environment == 'Ant-Trap'")["mean"].item() == 1540
+    t44 = thesis.table("4.4")
+    row = t44.query("method == 'QDT (PGA-ME-LS)' and environment == 'Halfcheetah-Uni' and metric == 'avg_distance'")
+    assert abs(row["mean"].item() - 0.0734) < 1e-9  # printed x10^2
+    assert len(thesis.table("3.3")) == 5 and len(thesis.table("4.5")) == 4 and len(thesis.table("5.1")) == 11
+    with pytest.raises(ValueError, match="available"):
+        thesis.table("9.9")
+    with pytest.raises(ValueError, match="lacks"):
+        thesis.comparison([{"quantity": "x"}])
