@@ -1,0 +1,87 @@
+"""Policy-evaluation throughput on Point-Maze: qdnb's `evaluate_policies` against a
+bare `lax.scan` of the environment step and the policy forward pass, same batch.
+
+Writes bench/results/rollout.json.  Usage: python bench/rollout.py [--batches 256 1024]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from qdnb.envs import make_env
+from qdnb.envs.rollout import evaluate_policies
+from qdnb.provenance import atomic_write_json, device, versions
+from qdnb.rl.networks import MLP, init_policies
+
+
+def bare_scan(env, network):
+    """Reset, then step every environment for the full episode: no termination
+    masking, no descriptor, no return bookkeeping beyond summing rewards."""
+
+    def run(params, key):
+        states = jax.vmap(env.reset)(jax.random.split(key, jax.tree.leaves(params)[0].shape[0]))
+
+        def step(s, _):
+            s = jax.vmap(env.step)(s, jax.vmap(network.apply)(params, s.obs))
+            return s, s.reward
+
+        _, rewards = jax.lax.scan(step, states, None, length=env.episode_length)
+        return rewards.sum(0)
+
+    return jax.jit(run)
+
+
+def timed(fn, params, key, repeats):
+    jax.block_until_ready(fn(params, key))  # compile
+    times = []
+    for i in range(repeats):
+        k = jax.random.fold_in(key, i)
+        start = time.perf_counter()
+        jax.block_until_ready(fn(params, k))
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--batches", type=int, nargs="+", default=[256, 1024])
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "rollout.json")
+    args = parser.parse_args()
+
+    env = make_env("pointmaze")
+    network = MLP((16, 16, env.action_size))
+    qdnb_eval = jax.jit(lambda p, k: evaluate_policies(env, network.apply, p, k).fitness)
+    bare = bare_scan(env, network)
+    rows = []
+    for batch in args.batches:
+        params = init_policies(network, jax.random.PRNGKey(0), batch, env.observation_size)
+        key = jax.random.PRNGKey(1)
+        t_qdnb = timed(qdnb_eval, params, key, args.repeats)
+        t_bare = timed(bare, params, key, args.repeats)
+        steps = batch * env.episode_length
+        rows.append({
+            "batch": batch,
+            "episode_length": env.episode_length,
+            "qdnb_seconds": t_qdnb,
+            "bare_seconds": t_bare,
+            "qdnb_steps_per_second": steps / t_qdnb,
+            "bare_steps_per_second": steps / t_bare,
+            "overhead": t_qdnb / t_bare - 1.0,
+        })
+        print(f"batch {batch}: qdnb {steps / t_qdnb:,.0f} steps/s, bare {steps / t_bare:,.0f} steps/s, "
+              f"overhead {100 * (t_qdnb / t_bare - 1):+.1f}%")
+    atomic_write_json(args.out, {"benchmark": "pointmaze policy evaluation", "policy": "MLP 2-16-16-2",
+                                 "device": device(), "versions": versions(), "repeats": args.repeats,
+                                 "results": rows})
+
+
+if __name__ == "__main__":
+    main()
