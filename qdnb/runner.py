@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from qdnb import paths
-from qdnb.provenance import atomic_write_json, load_summary
+from qdnb.provenance import atomic_write_bytes, atomic_write_json, load_summary
 from qdnb.scale import SCALES, check_scale
 
 # Book order; chapters without a notebook yet are listed as planned.
@@ -113,6 +113,37 @@ def execute(source: Path, output: Path, parameters: dict, label: str, progress: 
     return output
 
 
+def _last_write(line: str) -> str:
+    """What a terminal shows of a line that carriage returns rewrote (progress bars)."""
+    parts = [p for p in line.split("\r") if p.strip()]
+    return parts[-1] if parts else ""
+
+
+def tidy_streams(path: Path) -> None:
+    """Merge consecutive stdout/stderr outputs of each cell and keep only the last
+    state of carriage-return-rewritten lines, so that a progress bar reads as one
+    finished line in the book instead of one line per update."""
+    import nbformat
+
+    nb = nbformat.read(path, as_version=4)
+    for cell in nb.cells:
+        if cell.cell_type != "code":
+            continue
+        merged = []
+        for out in cell.outputs:
+            if out.output_type == "stream" and merged and merged[-1].output_type == "stream" \
+                    and merged[-1].name == out.name:
+                merged[-1].text += out.text
+            else:
+                merged.append(out)
+        for out in merged:
+            if out.output_type == "stream":
+                lines = [_last_write(line) for line in out.text.split("\n")]
+                out.text = "\n".join(line for line in lines if line) + "\n"
+        cell.outputs = merged
+    atomic_write_bytes(path, nbformat.writes(nb).encode())
+
+
 def run_notebook(name: str, scale: str, seed: int = 0, reuse: bool = False, progress: bool = True) -> Path:
     """Execute one notebook at ``scale``; with ``reuse``, keep an earlier execution
     whose fingerprint matches.  Returns the executed copy."""
@@ -128,6 +159,7 @@ def run_notebook(name: str, scale: str, seed: int = 0, reuse: bool = False, prog
     record_path.unlink(missing_ok=True)
     start = time.time()
     execute(paths.NOTEBOOKS / f"{name}.ipynb", out, {"scale": scale, "seed": seed}, name, progress)
+    tidy_streams(out)
     atomic_write_json(record_path, {"fingerprint": fp, "status": "ok", "seed": seed,
                                     "execution_wall_time_s": round(time.time() - start, 2)})
     return out

@@ -150,3 +150,19 @@ def test_thesis_tables_are_transcribed():
         thesis.table("9.9")
     with pytest.raises(ValueError, match="lacks"):
         thesis.comparison([{"quantity": "x"}])
+
+
+def test_progress_bars_are_tidied_to_their_last_state(tmp_path):
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell("x")]
+    nb.cells[0].outputs = [
+        nbformat.v4.new_output("stream", name="stderr", text="\rGA:   0%| 0/10"),
+        nbformat.v4.new_output("stream", name="stderr", text="\rGA:  50%| 5/10"),
+        nbformat.v4.new_output("stream", name="stderr", text="\rGA: 100%| 10/10\n"),
+        nbformat.v4.new_output("stream", name="stdout", text="done\n"),
+    ]
+    path = tmp_path / "nb.ipynb"
+    nbformat.write(nb, path)
+    runner.tidy_streams(path)
+    outputs = nbformat.read(path, as_version=4).cells[0].outputs
+    assert [(o.name, o.text) for o in outputs] == [("stderr", "GA: 100%| 10/10\n"), ("stdout", "done\n")]

@@ -96,10 +96,12 @@ def test_episode_ends_at_goal_and_is_frozen_after():
                                      jnp.array(GOAL)))
         return jnp.clip((target - obs) * 20.0, -1.0, 1.0)
 
-    ev = rollout(env, to_goal, None, jax.random.PRNGKey(0), return_trajectory=True)
+    ev = rollout(env, to_goal, jnp.zeros(()), jax.random.PRNGKey(0), return_trajectory=True)
     assert bool(in_goal(ev.descriptor))
     length = int(ev.length)
     assert 0 < length < env.episode_length
+    # the descriptor is the position where the episode ended, not where the point drifted after
+    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["next_obs"])[length - 1])
     valid = np.asarray(ev.trajectory["valid"])
     assert valid[:length].all() and not valid[length:].any()
     np.testing.assert_allclose(ev.fitness, np.asarray(ev.trajectory["reward"])[:length].sum(), rtol=1e-6)

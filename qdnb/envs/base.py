@@ -51,15 +51,15 @@ class Env:
         raise NotImplementedError
 
     def behaviour_descriptor(
-        self, final_state: EnvState, state_descriptors: jax.Array, valid: jax.Array
+        self, last_state_descriptor: jax.Array, state_descriptor_sum: jax.Array, length: jax.Array
     ) -> jax.Array:
-        """Behaviour descriptor of an episode.
-
-        ``state_descriptors`` has shape ``(T, d)`` and ``valid`` marks the steps that
-        happened before the episode ended.  The default is the final one.
+        """Behaviour descriptor of an episode, from the state descriptor of its last
+        step, the sum of its state descriptors over the steps taken and the number
+        of those steps (final-state and time-averaged descriptors alike, with no
+        stored trajectory).  The default is the final state descriptor.
         """
-        del state_descriptors, valid
-        return final_state.state_descriptor
+        del state_descriptor_sum, length
+        return last_state_descriptor
 
     @property
     def descriptor_bounds(self) -> tuple[jax.Array, jax.Array]:

@@ -29,41 +29,6 @@ class Evaluation:
     trajectory: Any = None
 
 
-def rollout(
-    env: Env,
-    policy_apply: PolicyApply,
-    params: Any,
-    key: jax.Array,
-    return_trajectory: bool = False,
-) -> Evaluation:
-    """Play one episode of a deterministic policy from a random initial state.
-
-    Once ``done``, the state is frozen and later steps are marked invalid, so the
-    scan keeps a fixed length (``env.episode_length``) and stays jittable.
-    """
-    state = env.reset(key)
-
-    def step(state, _):
-        action = policy_apply(params, state.obs)
-        nxt = env.step(state, action)
-        valid = ~state.done
-        nxt = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, nxt)
-        out = {"valid": valid, "reward": jnp.where(valid, nxt.reward, 0.0),
-               "state_descriptor": nxt.state_descriptor}
-        if return_trajectory:
-            out.update(obs=state.obs, action=action, next_obs=nxt.obs, done=nxt.done)
-        return nxt, out
-
-    final, traj = jax.lax.scan(step, state, None, length=env.episode_length)
-    descriptor = env.behaviour_descriptor(final, traj["state_descriptor"], traj["valid"])
-    return Evaluation(
-        fitness=jnp.sum(traj["reward"]),
-        descriptor=descriptor,
-        length=jnp.sum(traj["valid"]),
-        trajectory=traj if return_trajectory else None,
-    )
-
-
 def evaluate_policies(
     env: Env,
     policy_apply: PolicyApply,
@@ -71,8 +36,52 @@ def evaluate_policies(
     key: jax.Array,
     return_trajectory: bool = False,
 ) -> Evaluation:
-    """Evaluate a batch of policies (leading axis of every leaf of ``params``),
-    one episode each, each from its own random initial state."""
+    """Evaluate a batch of deterministic policies (leading axis of every leaf of
+    ``params``), one episode each, each from its own random initial state.
+
+    One ``lax.scan`` over time whose body steps every environment at once
+    (``vmap``), as a bare simulation loop would.  The scan keeps the fixed length
+    ``env.episode_length``: once an episode is ``done`` the environment keeps
+    stepping but nothing it does counts (an ``alive`` flag masks rewards and
+    descriptors), which costs less than freezing the state.  Return, length, the
+    sum and the last of the state descriptors are accumulated in the carry;
+    per-step arrays, with shape ``(batch, time, ...)``, are only stacked when
+    ``return_trajectory`` asks (``valid`` marks the steps taken while alive).
+    """
     batch = jax.tree.leaves(params)[0].shape[0]
-    keys = jax.random.split(key, batch)
-    return jax.vmap(lambda p, k: rollout(env, policy_apply, p, k, return_trajectory))(params, keys)
+    states = jax.vmap(env.reset)(jax.random.split(key, batch))
+
+    def one_env(params, carry):
+        state, alive, ret, length, sd_sum, last_sd = carry
+        action = policy_apply(params, state.obs)
+        nxt = env.step(state, action)
+        reward = jnp.where(alive, nxt.reward, 0.0)
+        carry = (nxt, alive & ~nxt.done, ret + reward, length + alive,
+                 sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
+                 jnp.where(alive, nxt.state_descriptor, last_sd))
+        out = None
+        if return_trajectory:
+            out = {"obs": state.obs, "action": action, "reward": reward, "next_obs": nxt.obs,
+                   "done": nxt.done, "state_descriptor": nxt.state_descriptor, "valid": alive}
+        return carry, out
+
+    step = jax.vmap(one_env)
+    init = (states, ~states.done, jnp.zeros((batch,)), jnp.zeros((batch,), jnp.int32),
+            jnp.zeros_like(states.state_descriptor), states.state_descriptor)
+    (_, _, ret, length, sd_sum, last_sd), traj = jax.lax.scan(lambda c, _: step(params, c), init, None,
+                                                                  length=env.episode_length)
+    if return_trajectory:
+        traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)
+    return Evaluation(
+        fitness=ret,
+        descriptor=jax.vmap(env.behaviour_descriptor)(last_sd, sd_sum, length),
+        length=length,
+        trajectory=traj,
+    )
+
+
+def rollout(env: Env, policy_apply: PolicyApply, params: Any, key: jax.Array,
+            return_trajectory: bool = False) -> Evaluation:
+    """One episode of one policy: ``evaluate_policies`` on a batch of one."""
+    batched = evaluate_policies(env, policy_apply, jax.tree.map(lambda x: x[None], params), key, return_trajectory)
+    return jax.tree.map(lambda x: x[0], batched)
