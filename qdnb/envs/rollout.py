@@ -85,3 +85,18 @@ def rollout(env: Env, policy_apply: PolicyApply, params: Any, key: jax.Array,
     """One episode of one policy: ``evaluate_policies`` on a batch of one."""
     batched = evaluate_policies(env, policy_apply, jax.tree.map(lambda x: x[None], params), key, return_trajectory)
     return jax.tree.map(lambda x: x[0], batched)
+
+
+def evaluate_episodes(
+    env: Env,
+    policy_apply: PolicyApply,
+    params: Any,
+    key: jax.Array,
+    num_episodes: int,
+) -> Evaluation:
+    """Evaluate each policy of a batch over ``num_episodes`` episodes from
+    different initial states, in one vmapped call (the parameters are shared by
+    the episodes, not copied).  Leaves have shape ``(batch, num_episodes, ...)``."""
+    keys = jax.random.split(key, num_episodes)
+    per_episode = jax.vmap(lambda k: evaluate_policies(env, policy_apply, params, k))(keys)
+    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), per_episode)

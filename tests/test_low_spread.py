@@ -1,0 +1,105 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from qdnb.envs import make_env
+from qdnb.envs.rollout import evaluate_episodes, evaluate_policies
+from qdnb.qd.low_spread import (
+    LowSpreadRepertoire,
+    LowSpreadScores,
+    geometric_median,
+    insert_low_spread,
+    low_spread_scores,
+    mode_cell,
+    spread,
+)
+from qdnb.qd.repertoire import init_repertoire
+from qdnb.rl.networks import MLP, init_policies
+
+CENTROIDS = jnp.array([[0.0, 0.0], [10.0, 0.0]])
+
+
+def test_spread_hand_computed():
+    # pairs: (0,0)-(3,0)=3, (0,0)-(0,4)=4, (3,0)-(0,4)=5 -> mean 4
+    np.testing.assert_allclose(spread(jnp.array([[0.0, 0.0], [3.0, 0.0], [0.0, 4.0]])), 4.0, rtol=1e-6)
+    np.testing.assert_allclose(spread(jnp.ones((5, 2))), 0.0)
+    np.testing.assert_allclose(spread(jnp.ones((1, 2))), 0.0)
+
+
+def test_mode_cell_and_ties():
+    assert int(mode_cell(jnp.array([3, 1, 1, 2, 1]))) == 1
+    assert int(mode_cell(jnp.array([4, 2, 2, 4]))) == 4  # tie: the cell reached first
+
+
+def test_geometric_median():
+    # the geometric median of a cross is its centre, whatever the outlier's distance
+    pts = jnp.array([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0], [100.0, 0.0]])
+    np.testing.assert_allclose(geometric_median(pts, 200), [0.2, 0.0], atol=0.25)
+    np.testing.assert_allclose(geometric_median(jnp.array([[0.0, 0.0], [0.0, 0.0], [5.0, 5.0]]), 200), [0.0, 0.0],
+                               atol=1e-3)
+    # collinear points: the median of the middle
+    np.testing.assert_allclose(geometric_median(jnp.array([[0.0, 0.0], [1.0, 0.0], [9.0, 0.0]]), 300), [1.0, 0.0],
+                               atol=1e-3)
+
+
+def test_scores_use_the_mode_cell_and_its_mean_descriptor():
+    fit = jnp.array([[1.0, 2.0, 3.0]])
+    desc = jnp.array([[[0.0, 1.0], [0.0, -1.0], [10.0, 0.0]]])  # two episodes in cell 0, one in cell 1
+    s = low_spread_scores(CENTROIDS, fit, desc)
+    np.testing.assert_allclose(s.fitness, [2.0])
+    np.testing.assert_array_equal(s.cell, [0])
+    np.testing.assert_allclose(s.descriptor, [[0.0, 0.0]])
+    np.testing.assert_allclose(s.spread, [(2.0 + 2 * np.hypot(10.0, 1.0)) / 3], rtol=1e-6)
+
+
+def _lsr():
+    return LowSpreadRepertoire.create(init_repertoire(CENTROIDS, {"w": jnp.zeros(2)}))
+
+
+def _scores(fit, cell, spr):
+    fit = jnp.asarray(fit, jnp.float32)
+    return LowSpreadScores(fit, jnp.asarray(cell), jnp.asarray(CENTROIDS)[jnp.asarray(cell)], jnp.asarray(spr, jnp.float32))
+
+
+def _genotypes(ids):
+    return {"w": jnp.asarray(ids, jnp.float32)[:, None] * jnp.ones((1, 2))}
+
+
+def test_low_spread_insertion_rules():
+    lsr, inserted = insert_low_spread(_lsr(), _genotypes([1]), _scores([5.0], [0], [2.0]))
+    assert inserted.tolist() == [True]  # empty cell
+    np.testing.assert_allclose(lsr.spreads, [2.0, np.inf])
+    cases = [  # (fitness, spread, inserted?) against the incumbent (5.0, 2.0)
+        (6.0, 3.0, False),  # better fitness, higher spread
+        (4.0, 1.0, False),  # lower spread, worse fitness
+        (5.0, 1.0, False),  # equal fitness is not better
+        (6.0, 1.0, True),  # both better
+    ]
+    for fit, spr, expected in cases:
+        new, inserted = insert_low_spread(lsr, _genotypes([2]), _scores([fit], [0], [spr]))
+        assert bool(inserted[0]) == expected, (fit, spr)
+        assert float(new.repertoire.fitnesses[0]) == (fit if expected else 5.0)
+
+
+def test_two_candidates_for_one_cell_follow_the_same_rule():
+    lsr, _ = insert_low_spread(_lsr(), _genotypes([1]), _scores([5.0], [0], [2.0]))
+    # candidate 0 beats the incumbent; candidate 1 is fitter but has a higher spread than the
+    # incumbent, so it is not eligible; candidate 2 is eligible and fitter than candidate 0
+    new, inserted = insert_low_spread(lsr, _genotypes([10, 11, 12]), _scores([6.0, 9.0, 7.0], [0, 0, 0], [1.0, 3.0, 1.5]))
+    assert inserted.tolist() == [False, False, True]
+    assert float(new.repertoire.genotypes["w"][0, 0]) == 12.0 and float(new.spreads[0]) == 1.5
+    # in an empty cell every candidate is eligible and the fittest wins
+    new, inserted = insert_low_spread(_lsr(), _genotypes([10, 11]), _scores([1.0, 2.0], [1, 1], [0.1, 9.0]))
+    assert inserted.tolist() == [False, True]
+
+
+def test_multi_episode_evaluation_differs_only_by_initial_state():
+    env = make_env("pointmaze")
+    net = MLP((8, 2))
+    params = init_policies(net, jax.random.PRNGKey(0), 3, env.observation_size)
+    ev = evaluate_episodes(env, net.apply, params, jax.random.PRNGKey(1), 4)
+    assert ev.fitness.shape == (3, 4) and ev.descriptor.shape == (3, 4, 2)
+    assert len(np.unique(np.asarray(ev.fitness[0]))) == 4  # different starts, different episodes
+    # episode e of every policy is the batched evaluation with the e-th key
+    one = evaluate_policies(env, net.apply, params, jax.random.split(jax.random.PRNGKey(1), 4)[2])
+    np.testing.assert_allclose(ev.fitness[:, 2], one.fitness, rtol=1e-6)
