@@ -7,8 +7,23 @@ from typing import Callable
 from qdnb.envs.base import Env, EnvState
 from qdnb.envs.pointmaze import PointMaze
 
+
+def _ant_omni(**kwargs) -> Env:
+    from qdnb.envs.locomotion import AntOmni  # imports brax only when asked for
+
+    return AntOmni(**kwargs)
+
+
+def _halfcheetah_uni(**kwargs) -> Env:
+    from qdnb.envs.locomotion import HalfcheetahUni
+
+    return HalfcheetahUni(**kwargs)
+
+
 _REGISTRY: dict[str, Callable[..., Env]] = {
     "pointmaze": PointMaze,
+    "ant_omni": _ant_omni,
+    "halfcheetah_uni": _halfcheetah_uni,
 }
 
 

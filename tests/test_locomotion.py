@@ -1,0 +1,79 @@
+"""Brax tasks of Chapter 4: descriptors, fitness, contacts, resets."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from qdnb.envs import make_env
+from qdnb.envs.rollout import evaluate_policies
+
+
+@pytest.fixture(scope="module")
+def ant():
+    return make_env("ant_omni", episode_length=12)
+
+
+@pytest.fixture(scope="module")
+def cheetah():
+    return make_env("halfcheetah_uni", episode_length=12)
+
+
+def test_resets_are_deterministic_and_differ_by_key(ant, cheetah):
+    for env in (ant, cheetah):
+        reset = jax.jit(env.reset)
+        a, b, c = reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(1))
+        np.testing.assert_array_equal(a.obs, b.obs)
+        assert not np.allclose(a.obs, c.obs)
+        assert a.obs.shape == (env.observation_size,)
+
+
+def test_ant_omni_descriptor_and_fitness(ant):
+    def policy(params, obs):  # a fixed open-loop-ish policy: actions of varying size
+        return jnp.tanh(params * jnp.ones(ant.action_size) + 0.1 * obs[: ant.action_size])
+
+    params = jnp.array([0.0, 0.5, 3.0])
+    ev = jax.jit(lambda p, k: evaluate_policies(ant, policy, p, k, return_trajectory=True))(params, jax.random.PRNGKey(0))
+    assert ev.descriptor.shape == (3, 2)
+    assert np.all(np.abs(ev.descriptor) <= 15.0)
+    actions = np.clip(np.asarray(ev.trajectory["action"]), -1, 1)
+    np.testing.assert_allclose(ev.fitness, -np.linalg.norm(actions, axis=-1).sum(axis=1), rtol=1e-5)
+    # the descriptor is where the torso ended: the last state descriptor
+    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["state_descriptor"])[:, -1], rtol=1e-6)
+    assert np.all(np.asarray(ev.length) == 12)
+
+
+def test_halfcheetah_contacts_are_real(cheetah):
+    step = jax.jit(cheetah.step)
+    sys = cheetah.brax_env.sys
+    still = cheetah.reset(jax.random.PRNGKey(0)).replace(core=cheetah.brax_env.pipeline_init(sys.init_q, jnp.zeros(sys.qd_size())))
+    for _ in range(20):  # let it settle on the ground with no torque
+        still = step(still, jnp.zeros(cheetah.action_size))
+    np.testing.assert_array_equal(still.state_descriptor, [1.0, 1.0])
+
+    lifted_q = sys.init_q.at[1].add(1.0)  # root z one metre up
+    air = still.replace(core=cheetah.brax_env.pipeline_init(lifted_q, jnp.zeros(sys.qd_size())))
+    air = step(air, jnp.zeros(cheetah.action_size))
+    np.testing.assert_array_equal(air.state_descriptor, [0.0, 0.0])
+
+
+def test_halfcheetah_descriptor_is_the_fraction_of_steps_in_contact(cheetah):
+    def policy(params, obs):
+        del obs
+        return params * jnp.ones(cheetah.action_size)
+
+    ev = jax.jit(lambda p, k: evaluate_policies(cheetah, policy, p, k, return_trajectory=True))(
+        jnp.array([0.0, 1.0]), jax.random.PRNGKey(3))
+    assert ev.descriptor.shape == (2, 2)
+    assert np.all((ev.descriptor >= 0) & (ev.descriptor <= 1))
+    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["state_descriptor"]).mean(axis=1), rtol=1e-6)
+
+
+def test_halfcheetah_reward_is_forward_speed_minus_action_norm(cheetah):
+    state = cheetah.reset(jax.random.PRNGKey(5))
+    action = jnp.array([0.5, -0.5, 0.2, 0.0, 0.3, -2.0])  # the last one is clipped to -1
+    nxt = jax.jit(cheetah.step)(state, action)
+    forward = (nxt.core.x.pos[0, 0] - state.core.x.pos[0, 0]) / cheetah.brax_env.dt
+    expected = forward - np.linalg.norm(np.clip(np.asarray(action), -1, 1))
+    np.testing.assert_allclose(nxt.reward, expected, rtol=1e-5)
+    assert int(nxt.steps) == 1 and not bool(nxt.done)
