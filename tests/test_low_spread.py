@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.envs import make_env
-from qdnb.envs.rollout import evaluate_episodes, evaluate_policies
+from qdnb.envs.rollout import Evaluation, evaluate_episodes, evaluate_policies
 from qdnb.qd.low_spread import (
     LowSpreadRepertoire,
     LowSpreadScores,
@@ -103,3 +103,47 @@ def test_multi_episode_evaluation_differs_only_by_initial_state():
     # episode e of every policy is the batched evaluation with the e-th key
     one = evaluate_policies(env, net.apply, params, jax.random.split(jax.random.PRNGKey(1), 4)[2])
     np.testing.assert_allclose(ev.fitness[:, 2], one.fitness, rtol=1e-6)
+
+
+def test_reassessment_with_a_stub_scoring_function():
+    from qdnb.qd.low_spread import reassess
+    from qdnb.qd.repertoire import insert
+
+    centroids = jnp.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    rep = init_repertoire(centroids, {"g": jnp.zeros(())})
+    # three elites, one per cell, with genotypes 1, 2, 3
+    rep, _ = insert(rep, {"g": jnp.array([1.0, 2.0, 3.0])}, jnp.array([10.0, 20.0, 30.0]), centroids)
+
+    def stub(genotypes, key):  # every solution really lands in cell 0 twice out of three, with fitness g
+        del key
+        g = genotypes["g"]
+        desc = jnp.stack([jnp.zeros((3, 2)), jnp.zeros((3, 2)), jnp.tile(jnp.array([[20.0, 0.0]]), (3, 1))], axis=1)
+        return Evaluation(fitness=jnp.repeat(g[:, None], 3, axis=1), descriptor=desc, length=jnp.full((3, 3), 30))
+
+    new = reassess(rep, stub, jax.random.PRNGKey(0))
+    # all three collapse into cell 0, which keeps the fittest (genotype 3, mean fitness 3)
+    np.testing.assert_array_equal(new.filled, [True, False, False])
+    np.testing.assert_allclose(new.fitnesses[0], 3.0)
+    np.testing.assert_allclose(new.genotypes["g"][0], 3.0)
+
+
+def test_me_low_spread_and_sampling_run_and_keep_their_invariants():
+    from qdnb.qd.algorithms import MapElites, MapElitesLowSpread, MapElitesSampling, run_seeds
+    from qdnb.qd.cvt import grid_centroids
+
+    env = make_env("pointmaze", episode_length=30)
+    common = dict(env=env, network=MLP((4, 2)), batch_size=8, iso_sigma=0.1, line_sigma=0.2,
+                  centroids=grid_centroids((4, 4), (-1, -1), (1, 1)), fitness_offset=-100.0)
+    keys = jax.random.split(jax.random.PRNGKey(0), 1)
+    ls_state, _, h = run_seeds(MapElitesLowSpread(**common, num_episodes=3), keys, 4, 4, (4, 4), (-0.5, 0.8), progress=False)
+    assert h["descriptors"].shape == (1, 5, 8, 3, 2)
+    lsr = jax.tree.map(lambda x: x[0], ls_state.repertoire)
+    filled = np.asarray(lsr.repertoire.filled)
+    assert filled.any() and np.all(np.isfinite(np.asarray(lsr.spreads)[filled]))
+    # every stored descriptor lies in the cell it is filed under
+    from qdnb.qd.cvt import nearest
+    cells = np.asarray(nearest(lsr.repertoire.centroids, lsr.repertoire.descriptors))
+    assert np.all(cells[filled] == np.arange(16)[filled])
+    sampling_state, _, h = run_seeds(MapElitesSampling(**common, num_episodes=3), keys, 4, 4, (4, 4), (-0.5, 0.8),
+                                     progress=False)
+    assert np.all(np.diff(h["qd_score"], axis=1) >= 0)

@@ -23,8 +23,9 @@ import jax.numpy as jnp
 from flax import struct
 
 from qdnb.envs.base import Env
-from qdnb.envs.rollout import Evaluation, evaluate_policies
+from qdnb.envs.rollout import Evaluation, evaluate_episodes, evaluate_policies
 from qdnb.qd import repertoire as rep_lib
+from qdnb.qd.low_spread import LowSpreadRepertoire, geometric_median, insert_low_spread, low_spread_scores
 from qdnb.qd.metrics import qd_metrics
 from qdnb.qd.novelty import NoveltyArchive, knn_novelty
 from qdnb.qd.variation import isoline_variation
@@ -138,39 +139,93 @@ class NoveltySearch(PolicySearch):
 
 @struct.dataclass
 class MapElitesState:
-    repertoire: rep_lib.Repertoire
+    repertoire: Any  # a Repertoire, or a LowSpreadRepertoire for ME-LS
     key: jax.Array
 
 
 @dataclass(frozen=True, eq=False)
 class MapElites(PolicySearch):
-    """MAP-Elites (Algorithm 1) with batched selection, variation and insertion."""
+    """MAP-Elites (Algorithm 1) with batched selection, variation and insertion.
+
+    Variants change how a batch is evaluated and inserted
+    (``evaluate_and_insert``) and what the archive holds (``empty_archive``,
+    ``elites``); selection and variation stay those of MAP-Elites.
+    """
 
     centroids: jax.Array | None = None
     fitness_offset: float = 0.0
 
+    def empty_archive(self, params: Any) -> Any:
+        return rep_lib.init_repertoire(self.centroids, take(params, 0))
+
+    def elites(self, archive: Any) -> rep_lib.Repertoire:
+        return archive
+
+    def evaluate_and_insert(self, archive: Any, genotypes: Any, key: jax.Array) -> tuple[Any, Evaluation]:
+        """One episode per candidate, fitness-only insertion."""
+        ev = self.evaluate(genotypes, key)
+        archive, _ = rep_lib.insert(archive, genotypes, ev.fitness, ev.descriptor)
+        return archive, ev
+
     def init(self, key: jax.Array) -> tuple[MapElitesState, Evaluation]:
         k_init, k_eval, key = jax.random.split(key, 3)
         params = self.random_policies(k_init)
-        ev = self.evaluate(params, k_eval)
-        repertoire = rep_lib.init_repertoire(self.centroids, take(params, 0))
-        repertoire, _ = rep_lib.insert(repertoire, params, ev.fitness, ev.descriptor)
-        return MapElitesState(repertoire, key), ev
+        archive, ev = self.evaluate_and_insert(self.empty_archive(params), params, k_eval)
+        return MapElitesState(archive, key), ev
 
     def step(self, state: MapElitesState) -> tuple[MapElitesState, Evaluation]:
         key, k_sel, k_vary, k_eval = jax.random.split(state.key, 4)
-        parents = rep_lib.sample(state.repertoire, k_sel, self.batch_size)
+        parents = rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size)
         offspring = self.vary(parents, k_vary)
-        ev = self.evaluate(offspring, k_eval)
-        repertoire, _ = rep_lib.insert(state.repertoire, offspring, ev.fitness, ev.descriptor)
-        return MapElitesState(repertoire, key), ev
+        archive, ev = self.evaluate_and_insert(state.repertoire, offspring, k_eval)
+        return MapElitesState(archive, key), ev
 
     def metrics(self, state: MapElitesState) -> dict[str, jax.Array]:
-        return qd_metrics(state.repertoire, self.fitness_offset)
+        return qd_metrics(self.elites(state.repertoire), self.fitness_offset)
+
+
+@dataclass(frozen=True, eq=False)
+class MapElitesSampling(MapElites):
+    """ME-Sampling (Section 4.2): each candidate plays ``num_episodes`` episodes;
+    mean fitness, geometric-median descriptor, fitness-only insertion."""
+
+    num_episodes: int = 10
+
+    def evaluate_and_insert(self, archive, genotypes, key):
+        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes)
+        descriptors = jax.vmap(geometric_median)(ev.descriptor)
+        archive, _ = rep_lib.insert(archive, genotypes, jnp.mean(ev.fitness, axis=1), descriptors)
+        return archive, ev
+
+
+@dataclass(frozen=True, eq=False)
+class MapElitesLowSpread(MapElites):
+    """MAP-Elites Low-Spread (Algorithm 6): ``num_episodes`` episodes per
+    candidate, filed under its most frequent cell, inserted when that cell is
+    empty or when it beats the incumbent in fitness *and* spread (Eq. 4.1)."""
+
+    num_episodes: int = 10
+
+    def empty_archive(self, params):
+        return LowSpreadRepertoire.create(super().empty_archive(params))
+
+    def elites(self, archive):
+        return archive.repertoire
+
+    def evaluate_and_insert(self, archive, genotypes, key):
+        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes)
+        scores = low_spread_scores(self.centroids, ev.fitness, ev.descriptor)
+        archive, _ = insert_low_spread(archive, genotypes, scores)
+        return archive, ev
+
+    def metrics(self, state):
+        filled = state.repertoire.repertoire.filled
+        mean_spread = jnp.sum(jnp.where(filled, state.repertoire.spreads, 0.0)) / jnp.maximum(jnp.sum(filled), 1)
+        return {**super().metrics(state), "mean_spread": mean_spread}
 
 
 def run_seeds(
-    algorithm: GeneticAlgorithm | NoveltySearch | MapElites,
+    algorithm: PolicySearch,
     keys: jax.Array,
     num_iterations: int,
     chunk_size: int,

@@ -12,14 +12,14 @@ descriptors and the usual fitness-only insertion.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
 from qdnb.qd.cvt import nearest
-from qdnb.qd.repertoire import Repertoire, batch_winners, write_cells
+from qdnb.qd.repertoire import Repertoire, batch_winners, init_repertoire, insert, write_cells
 
 
 def spread(descriptors: jax.Array) -> jax.Array:
@@ -116,3 +116,21 @@ def insert_low_spread(lsr: LowSpreadRepertoire, genotypes: Any, scores: LowSprea
     new_rep = write_cells(rep, inserted, scores.cell, genotypes, scores.fitness, scores.descriptor)
     target = jnp.where(inserted, scores.cell, rep.num_cells)
     return LowSpreadRepertoire(new_rep, lsr.spreads.at[target].set(scores.spread, mode="drop")), inserted
+
+
+def reassess(repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any], key: jax.Array
+             ) -> Repertoire:
+    """The reassessment of Table 4.5: play every stored solution again over fresh
+    episodes and insert it into an empty repertoire of the same cells.
+
+    ``evaluate_fn(genotypes, key)`` returns an evaluation whose ``fitness`` has
+    shape ``(N, E)`` and ``descriptor`` ``(N, E, d)``.  Each solution is filed, as
+    in Low-Spread, under its most frequent cell with its mean fitness, and the
+    cell keeps the fittest (plain MAP-Elites insertion, the same for every
+    algorithm's repertoire).  Empty cells of the original stay out.
+    """
+    ev = evaluate_fn(repertoire.genotypes, key)
+    scores = low_spread_scores(repertoire.centroids, ev.fitness, ev.descriptor)
+    fitness = jnp.where(repertoire.filled, scores.fitness, -jnp.inf)
+    empty = init_repertoire(repertoire.centroids, jax.tree.map(lambda x: x[0], repertoire.genotypes))
+    return insert(empty, repertoire.genotypes, fitness, scores.descriptor)[0]
