@@ -59,18 +59,37 @@ def test_td3_learns_a_one_step_bandit():
             "next_obs": jnp.zeros((512, 1)), "terminal": jnp.ones(512)}
     buf = ReplayBuffer.create(512, 1, 1).add(data)
 
-    def train(state, key):
-        k1, k2 = jax.random.split(key)
-        return td3.critic_step(state, buf.sample(k1, cfg.batch_size), k2)
-
-    state, losses = jax.jit(lambda s, k: jax.lax.scan(train, s, jax.random.split(k, 1500)))(state, key)
-    assert float(losses[-100:].mean()) < 0.1 * float(losses[:100].mean())
+    state, losses = jax.jit(lambda s, k: td3.train_critic(s, buf, k, 1500))(state, key)
     action = float(td3.actor.apply(state.actor, jnp.zeros(1))[0])
     assert abs(action - 0.5) < 0.1
+    q1, _ = td3.critic.apply(state.critic, jnp.zeros((1, 1)), jnp.array([[0.5]]))
+    assert abs(float(q1[0])) < 0.05  # the best action's value, 0
     # the PGA-ME variation moves a fresh actor towards the same optimum against the trained critic
     fresh = td3.actor.init(jax.random.PRNGKey(7), jnp.zeros(1))
-    batches = jax.tree.map(lambda x: x.reshape((50, 10) + x.shape[1:]), buf.sample(jax.random.PRNGKey(2), 500))
-    improved = td3.policy_gradient_steps(fresh, state.critic, batches)
+    improved = td3.policy_gradient_steps(fresh, state.critic, buf, jax.random.PRNGKey(2), 50)
     before = abs(float(td3.actor.apply(fresh, jnp.zeros(1))[0]) - 0.5)
     after = abs(float(td3.actor.apply(improved, jnp.zeros(1))[0]) - 0.5)
     assert after < before
+
+
+def test_pga_me_and_pga_me_ls_iterate_fill_the_buffer_and_train_the_critic():
+    from qdnb.envs import make_env
+    from qdnb.qd.algorithms import PGAMapElites, PGAMapElitesLowSpread
+    from qdnb.qd.cvt import grid_centroids
+
+    env = make_env("pointmaze", episode_length=20)
+    common = dict(env=env, network=MLP((8, 2)), batch_size=6, iso_sigma=0.05, line_sigma=0.1,
+                  centroids=grid_centroids((4, 4), (-1, -1), (1, 1)), fitness_offset=-100.0,
+                  td3_config=TD3Config(critic_hidden=(16,), batch_size=8), num_critic_steps=4, num_pg_steps=3,
+                  buffer_size=2000)
+    for algo, episodes in [(PGAMapElites(**common), 1), (PGAMapElitesLowSpread(**common, num_episodes=2), 2)]:
+        state, ev = jax.jit(algo.init)(jax.random.PRNGKey(0))
+        assert int(state.buffer.size) == int(ev.length.sum())  # every valid transition, no more
+        step = jax.jit(algo.step)
+        state2, ev2 = step(state)
+        assert ev2.fitness.shape == ((6,) if episodes == 1 else (6, 2))
+        assert int(state2.buffer.size) == int(ev.length.sum() + ev2.length.sum())
+        assert int(state2.td3.steps) == 4
+        critic_moved = jax.tree.leaves(jax.tree.map(lambda a, b: jnp.abs(a - b).max(), state.td3.critic, state2.td3.critic))
+        assert max(float(x) for x in critic_moved) > 0
+        assert bool(algo.elites(state2.repertoire).filled.any())

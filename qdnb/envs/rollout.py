@@ -46,7 +46,8 @@ def evaluate_policies(
     descriptors), which costs less than freezing the state.  Return, length, the
     sum and the last of the state descriptors are accumulated in the carry;
     per-step arrays, with shape ``(batch, time, ...)``, are only stacked when
-    ``return_trajectory`` asks (``valid`` marks the steps taken while alive).
+    ``return_trajectory`` asks (``valid`` marks the steps taken while alive,
+    ``terminal`` the ends that are not the time limit, for bootstrapping).
     """
     batch = jax.tree.leaves(params)[0].shape[0]
     states = jax.vmap(env.reset)(jax.random.split(key, batch))
@@ -62,7 +63,8 @@ def evaluate_policies(
         out = None
         if return_trajectory:
             out = {"obs": state.obs, "action": action, "reward": reward, "next_obs": nxt.obs,
-                   "done": nxt.done, "state_descriptor": nxt.state_descriptor, "valid": alive}
+                   "done": nxt.done, "terminal": nxt.done & (nxt.steps < env.episode_length),
+                   "state_descriptor": nxt.state_descriptor, "valid": alive}
         return carry, out
 
     step = jax.vmap(one_env)
@@ -93,10 +95,11 @@ def evaluate_episodes(
     params: Any,
     key: jax.Array,
     num_episodes: int,
+    return_trajectory: bool = False,
 ) -> Evaluation:
     """Evaluate each policy of a batch over ``num_episodes`` episodes from
     different initial states, in one vmapped call (the parameters are shared by
     the episodes, not copied).  Leaves have shape ``(batch, num_episodes, ...)``."""
     keys = jax.random.split(key, num_episodes)
-    per_episode = jax.vmap(lambda k: evaluate_policies(env, policy_apply, params, k))(keys)
+    per_episode = jax.vmap(lambda k: evaluate_policies(env, policy_apply, params, k, return_trajectory))(keys)
     return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), per_episode)

@@ -29,7 +29,9 @@ from qdnb.qd.low_spread import LowSpreadRepertoire, geometric_median, insert_low
 from qdnb.qd.metrics import qd_metrics
 from qdnb.qd.novelty import NoveltyArchive, knn_novelty
 from qdnb.qd.variation import isoline_variation
+from qdnb.rl.buffer import ReplayBuffer
 from qdnb.rl.networks import MLP, init_policies
+from qdnb.rl.td3 import TD3, TD3Config, TD3State
 
 take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)
 concat = lambda a, b: jax.tree.map(lambda x, y: jnp.concatenate([x, y]), a, b)
@@ -154,6 +156,7 @@ class MapElites(PolicySearch):
 
     centroids: jax.Array | None = None
     fitness_offset: float = 0.0
+    collect_transitions: bool = False  # keep per-step transitions (for a replay buffer)
 
     def empty_archive(self, params: Any) -> Any:
         return rep_lib.init_repertoire(self.centroids, take(params, 0))
@@ -163,7 +166,7 @@ class MapElites(PolicySearch):
 
     def evaluate_and_insert(self, archive: Any, genotypes: Any, key: jax.Array) -> tuple[Any, Evaluation]:
         """One episode per candidate, fitness-only insertion."""
-        ev = self.evaluate(genotypes, key)
+        ev = evaluate_policies(self.env, self.network.apply, genotypes, key, self.collect_transitions)
         archive, _ = rep_lib.insert(archive, genotypes, ev.fitness, ev.descriptor)
         return archive, ev
 
@@ -192,7 +195,8 @@ class MapElitesSampling(MapElites):
     num_episodes: int = 10
 
     def evaluate_and_insert(self, archive, genotypes, key):
-        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes)
+        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes,
+                               self.collect_transitions)
         descriptors = jax.vmap(geometric_median)(ev.descriptor)
         archive, _ = rep_lib.insert(archive, genotypes, jnp.mean(ev.fitness, axis=1), descriptors)
         return archive, ev
@@ -213,7 +217,8 @@ class MapElitesLowSpread(MapElites):
         return archive.repertoire
 
     def evaluate_and_insert(self, archive, genotypes, key):
-        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes)
+        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes,
+                               self.collect_transitions)
         scores = low_spread_scores(self.centroids, ev.fitness, ev.descriptor)
         archive, _ = insert_low_spread(archive, genotypes, scores)
         return archive, ev
@@ -222,6 +227,79 @@ class MapElitesLowSpread(MapElites):
         filled = state.repertoire.repertoire.filled
         mean_spread = jnp.sum(jnp.where(filled, state.repertoire.spreads, 0.0)) / jnp.maximum(jnp.sum(filled), 1)
         return {**super().metrics(state), "mean_spread": mean_spread}
+
+
+@struct.dataclass
+class PGAState:
+    repertoire: Any
+    td3: TD3State
+    buffer: ReplayBuffer
+    key: jax.Array
+
+
+@dataclass(frozen=True, eq=False)
+class PGAMapElites(MapElites):
+    """PGA-MAP-Elites (Algorithm 5; Nilsson and Cully, 2021).
+
+    Each iteration: ``batch_size`` parents are drawn from the repertoire; half
+    take ``num_pg_steps`` TD3 actor steps against the shared critic, the others
+    iso+line variation, and the greedy TD3 actor completes the batch; the critic
+    (with the greedy actor, as TD3) trains for ``num_critic_steps`` steps on the
+    replay buffer; every offspring is evaluated, its transitions stored, and
+    inserted by the archive's rule.  The greedy actor is offered for insertion
+    like any offspring, as in the QDax implementation the thesis ran.
+    """
+
+    td3_config: TD3Config = TD3Config()
+    num_critic_steps: int = 300
+    num_pg_steps: int = 100
+    pg_proportion: float = 0.5
+    buffer_size: int = 1_000_000
+    collect_transitions: bool = True
+
+    @property
+    def td3(self) -> TD3:
+        return TD3(self.network, self.env.observation_size, self.env.action_size, self.td3_config)
+
+    @property
+    def num_pg(self) -> int:
+        return int(self.batch_size * self.pg_proportion)
+
+    def _store(self, buffer: ReplayBuffer, ev: Evaluation) -> ReplayBuffer:
+        t = ev.trajectory
+        flat = lambda x: x.reshape((-1,) + x.shape[len(ev.fitness.shape) + 1:])
+        transitions = {k: flat(t[k]).astype(jnp.float32) for k in ("obs", "action", "reward", "next_obs")}
+        transitions["terminal"] = flat(t["terminal"]).astype(jnp.float32)
+        return buffer.add(transitions, flat(t["valid"]))
+
+    def init(self, key: jax.Array) -> tuple[PGAState, Evaluation]:
+        k_init, k_eval, k_td3, key = jax.random.split(key, 4)
+        params = self.random_policies(k_init)
+        archive, ev = self.evaluate_and_insert(self.empty_archive(params), params, k_eval)
+        buffer = ReplayBuffer.create(self.buffer_size, self.env.observation_size, self.env.action_size)
+        return PGAState(archive, self.td3.init(k_td3), self._store(buffer, ev), key), ev
+
+    def step(self, state: PGAState) -> tuple[PGAState, Evaluation]:
+        key, k_sel, k_pg, k_vary, k_critic, k_eval = jax.random.split(state.key, 6)
+        td3 = self.td3
+        parents = rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size)
+        pg_parents = take(parents, jnp.arange(self.num_pg))
+        pg_offspring = jax.vmap(
+            lambda actor, k: td3.policy_gradient_steps(actor, state.td3.critic, state.buffer, k, self.num_pg_steps)
+        )(pg_parents, jax.random.split(k_pg, self.num_pg))
+        ga_offspring = take(self.vary(parents, k_vary), jnp.arange(self.batch_size - self.num_pg - 1))
+        greedy = jax.tree.map(lambda x: x[None], state.td3.actor)
+        offspring = concat(concat(pg_offspring, ga_offspring), greedy)
+        td3_state, _ = td3.train_critic(state.td3, state.buffer, k_critic, self.num_critic_steps)
+        archive, ev = self.evaluate_and_insert(state.repertoire, offspring, k_eval)
+        return PGAState(archive, td3_state, self._store(state.buffer, ev), key), ev
+
+
+@dataclass(frozen=True, eq=False)
+class PGAMapElitesLowSpread(PGAMapElites, MapElitesLowSpread):
+    """PGA-MAP-Elites Low-Spread (Algorithm 7): PGA-ME's variation and critic,
+    Low-Spread's ``num_episodes`` evaluations and insertion rule; every
+    transition of every episode goes to the replay buffer."""
 
 
 def run_seeds(

@@ -132,16 +132,29 @@ class TD3:
         state = jax.lax.cond(state.steps % cfg.policy_delay == 0, delayed, lambda s: s, state)
         return state, loss
 
-    def policy_gradient_steps(self, actor: Any, critic: Any, batches: dict) -> Any:
-        """Improve one actor with one Adam step per batch (leading axis of
-        ``batches``) against a fixed critic: the PG variation of PGA-ME."""
+    def policy_gradient_steps(self, actor: Any, critic: Any, buffer, key: jax.Array, num_steps: int) -> Any:
+        """Improve one actor with ``num_steps`` Adam steps (fresh optimiser state),
+        each on its own replay batch, against a fixed critic: the policy-gradient
+        variation of PGA-ME."""
         opt = self.actor_optimizer
 
-        def one(carry, batch):
+        def one(carry, k):
             params, opt_state = carry
-            grads = jax.grad(self.actor_loss)(params, critic, batch["obs"])
+            obs = buffer.sample(k, self.config.batch_size)["obs"]
+            grads = jax.grad(self.actor_loss)(params, critic, obs)
             updates, opt_state = opt.update(grads, opt_state)
             return (optax.apply_updates(params, updates), opt_state), None
 
-        (actor, _), _ = jax.lax.scan(one, (actor, opt.init(actor)), batches)
+        (actor, _), _ = jax.lax.scan(one, (actor, opt.init(actor)), jax.random.split(key, num_steps))
         return actor
+
+    def train_critic(self, state: TD3State, buffer, key: jax.Array, num_steps: int) -> tuple[TD3State, jax.Array]:
+        """``num_steps`` critic steps (with the delayed actor/target updates) on
+        replay batches; returns the mean critic loss."""
+
+        def one(s, k):
+            k_batch, k_noise = jax.random.split(k)
+            return self.critic_step(s, buffer.sample(k_batch, self.config.batch_size), k_noise)
+
+        state, losses = jax.lax.scan(one, state, jax.random.split(key, num_steps))
+        return state, jnp.mean(losses)
