@@ -147,3 +147,26 @@ def test_me_low_spread_and_sampling_run_and_keep_their_invariants():
     sampling_state, _, h = run_seeds(MapElitesSampling(**common, num_episodes=3), keys, 4, 4, (4, 4), (-0.5, 0.8),
                                      progress=False)
     assert np.all(np.diff(h["qd_score"], axis=1) >= 0)
+
+
+def test_accuracy_plays_the_nearest_stored_policy():
+    from qdnb.qd.low_spread import accuracy
+    from qdnb.qd.repertoire import insert
+
+    centroids = jnp.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    rep = init_repertoire(centroids, {"g": jnp.zeros(())})
+    rep, _ = insert(rep, {"g": jnp.array([1.0, 3.0])}, jnp.array([1.0, 1.0]), jnp.array([[0.0, 0.0], [20.0, 0.0]]))
+
+    def stub(genotypes, key):  # policy g lands at (g, 0) and (g, 2)
+        del key
+        g = genotypes["g"]
+        desc = jnp.stack([jnp.stack([g, jnp.zeros_like(g)], -1), jnp.stack([g, 2 * jnp.ones_like(g)], -1)], axis=1)
+        return Evaluation(fitness=jnp.zeros((g.shape[0], 2)), descriptor=desc, length=jnp.ones((g.shape[0], 2)))
+
+    goals = jnp.array([[1.0, 1.0], [12.0, 0.0], [19.0, 1.0]])
+    acc = accuracy(rep, goals, stub, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(acc.chosen, [0, 2, 2])  # cell 1 is empty: never chosen
+    # goal (1,1), policy 1 lands on (1,0) and (1,2): distance 1 each; goal (12,0), policy 3: (3,0),(3,2)
+    np.testing.assert_allclose(acc.distance, [1.0, (9.0 + np.hypot(9.0, 2.0)) / 2, (np.hypot(16, 1) + np.hypot(16, 1)) / 2],
+                               rtol=1e-6)
+    np.testing.assert_allclose(acc.spread, [2.0, 2.0, 2.0])

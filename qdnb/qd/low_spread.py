@@ -134,3 +134,25 @@ def reassess(repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any
     fitness = jnp.where(repertoire.filled, scores.fitness, -jnp.inf)
     empty = init_repertoire(repertoire.centroids, jax.tree.map(lambda x: x[0], repertoire.genotypes))
     return insert(empty, repertoire.genotypes, fitness, scores.descriptor)[0]
+
+
+@struct.dataclass
+class Accuracy:
+    """Per-goal results of the accuracy experiment (Section 4.5.2)."""
+
+    distance: jax.Array  # (G,) mean distance between the goal and the episodes' descriptors
+    spread: jax.Array  # (G,) Eq. 4.1 over the episodes
+    chosen: jax.Array  # (G,) repertoire cell whose policy was played
+
+
+def accuracy(repertoire: Repertoire, goals: jax.Array, evaluate_fn: Callable[[Any, jax.Array], Any],
+             key: jax.Array) -> Accuracy:
+    """For each goal descriptor, play the repertoire policy whose stored
+    descriptor is nearest to the goal (``evaluate_fn(genotypes, key)`` returns
+    ``(G, E)`` fitnesses and ``(G, E, d)`` descriptors) and measure how far its
+    episodes end from the goal, and their spread."""
+    d2 = jnp.sum((goals[:, None, :] - repertoire.descriptors[None, :, :]) ** 2, axis=-1)
+    chosen = jnp.argmin(jnp.where(repertoire.filled[None, :], d2, jnp.inf), axis=1)
+    ev = evaluate_fn(jax.tree.map(lambda x: x[chosen], repertoire.genotypes), key)
+    distance = jnp.mean(jnp.linalg.norm(ev.descriptor - goals[:, None, :], axis=-1), axis=1)
+    return Accuracy(distance=distance, spread=jax.vmap(spread)(ev.descriptor), chosen=chosen)
