@@ -1,4 +1,7 @@
-"""Three ways to search a space of neural-network policies under one budget:
+"""Searching a space of neural-network policies: the algorithms of the book.
+
+Chapters 1-2, under one budget and one variation operator, differing only in
+what they select and keep:
 
 - ``GeneticAlgorithm``: a fitness-driven (mu + lambda) evolutionary algorithm
   (Section 2.2.1): keep the ``population_size`` fittest of parents and offspring;
@@ -7,10 +10,16 @@
 - ``MapElites``: Algorithm 1, uniform selection from a repertoire whose cells each
   keep their best solution.
 
-All three use the same evaluation (one episode per policy) and the same
-iso+line variation, so they differ only in what they select and keep.  Each has
-``init(key) -> (state, evaluation)`` and ``step(state) -> (state, evaluation)``,
-pure functions ready for ``jit``, ``vmap`` over seeds and ``lax.scan``.
+Chapter 4, on MapElites' selection and iso+line variation:
+
+- ``MapElitesSampling`` and ``MapElitesLowSpread`` (Algorithm 6): several
+  episodes per candidate, with their own insertion rules;
+- ``PGAMapElites`` (Algorithm 5) and ``PGAMapElitesLowSpread`` (Algorithm 7):
+  half the offspring from TD3 policy-gradient steps on a shared critic.
+
+Each has ``init(key) -> (state, evaluation)`` and ``step(state) -> (state,
+evaluation)``, pure functions ready for ``jit``, ``vmap`` over seeds and
+``lax.scan``.
 """
 
 from __future__ import annotations
