@@ -26,7 +26,6 @@ def crosses_a_wall(p, q):
 
 def test_random_walks_never_cross_walls():
     env = make_env("pointmaze")
-    step = jax.jit(env.step)
 
     def walk(key):
         state = env.reset(key)
@@ -41,7 +40,6 @@ def test_random_walks_never_cross_walls():
     starts, ends = np.asarray(starts).reshape(-1, 2), np.asarray(ends).reshape(-1, 2)
     assert not any(crosses_a_wall(p, q) for p, q in zip(starts, ends))
     assert np.all(np.abs(ends) <= 1.0)
-    del step
 
 
 def test_pushing_straight_up_into_the_first_wall_stops_below_it():

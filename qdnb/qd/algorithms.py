@@ -57,8 +57,8 @@ class PolicySearch:
     iso_sigma: float
     line_sigma: float
 
-    def evaluate(self, params: Any, key: jax.Array) -> Evaluation:
-        return evaluate_policies(self.env, self.network.apply, params, key)
+    def evaluate(self, params: Any, key: jax.Array, return_trajectory: bool = False) -> Evaluation:
+        return evaluate_policies(self.env, self.network.apply, params, key, return_trajectory)
 
     def random_policies(self, key: jax.Array) -> Any:
         return init_policies(self.network, key, self.batch_size, self.env.observation_size)
@@ -175,7 +175,7 @@ class MapElites(PolicySearch):
 
     def evaluate_and_insert(self, archive: Any, genotypes: Any, key: jax.Array) -> tuple[Any, Evaluation]:
         """One episode per candidate, fitness-only insertion."""
-        ev = evaluate_policies(self.env, self.network.apply, genotypes, key, self.collect_transitions)
+        ev = self.evaluate(genotypes, key, self.collect_transitions)
         archive, _ = rep_lib.insert(archive, genotypes, ev.fitness, ev.descriptor)
         return archive, ev
 
