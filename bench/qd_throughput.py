@@ -22,19 +22,7 @@ from qdnb.provenance import atomic_write_json, device, versions
 from qdnb.qd.algorithms import MapElites, MapElitesLowSpread
 from qdnb.qd.cvt import cvt_centroids
 from qdnb.rl.networks import MLP, init_policies
-
-
-def bare_scan(env, network, batch):
-    def run(params, key):
-        states = jax.vmap(env.reset)(jax.random.split(key, batch))
-
-        def step(s, _):
-            s = jax.vmap(env.step)(s, jax.vmap(network.apply)(params, s.obs))
-            return s, s.reward
-
-        return jax.lax.scan(step, states, None, length=env.episode_length)[1].sum(0)
-
-    return jax.jit(run)
+from rollout import bare_scan  # bench/rollout.py: the same bare loop, batch taken from the parameters
 
 
 def median_time(fn, arg, repeats):
@@ -71,7 +59,7 @@ def main() -> None:
         step = jax.jit(lambda s: algo.step(s)[0])
         t_loop = median_time(step, state, args.repeats)
         n = args.batch * episodes
-        bare = bare_scan(env, network, n)
+        bare = bare_scan(env, network)
         params = init_policies(network, jax.random.PRNGKey(2), n, env.observation_size)
         t_bare = median_time(lambda k: bare(params, k), jax.random.PRNGKey(3), args.repeats)
         steps = n * env.episode_length

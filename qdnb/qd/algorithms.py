@@ -277,8 +277,7 @@ class PGAMapElites(MapElites):
     def _store(self, buffer: ReplayBuffer, ev: Evaluation) -> ReplayBuffer:
         t = ev.trajectory
         flat = lambda x: x.reshape((-1,) + x.shape[len(ev.fitness.shape) + 1:])
-        transitions = {k: flat(t[k]).astype(jnp.float32) for k in ("obs", "action", "reward", "next_obs")}
-        transitions["terminal"] = flat(t["terminal"]).astype(jnp.float32)
+        transitions = {k: flat(t[k]).astype(jnp.float32) for k in ("obs", "action", "reward", "next_obs", "terminal")}
         return buffer.add(transitions, flat(t["valid"]))
 
     def init(self, key: jax.Array) -> tuple[PGAState, Evaluation]:
