@@ -29,7 +29,7 @@ for name, algo, E in [("ME", MapElites(**common), 1), ("ME-LS", MapElitesLowSpre
     steps = (it + 1) * 1000 * E * 250
     rep = algo.elites(state.repertoire)
     acc = jax.jit(lambda r, k: accuracy(r, goals, ev_fn, k))(rep, jax.random.PRNGKey(3))
-    re = jax.jit(lambda r, k: reassess(r, ev_fn, k))(rep, jax.random.PRNGKey(4))
+    re = jax.jit(lambda r, k: reassess(r, ev_fn, k)[0])(rep, jax.random.PRNGKey(4))
     out[name] = dict(iterations=it, env_steps=steps, steps_per_s=steps / (time.time() - t1), coverage=float(rep.filled.mean()),
                      reassessed_coverage=float(re.filled.mean()), avg_distance=float(acc.distance.mean()),
                      avg_spread=float(acc.spread.mean()), max_fitness=float(rep.fitnesses.max()))

@@ -120,11 +120,13 @@ def test_reassessment_with_a_stub_scoring_function():
         desc = jnp.stack([jnp.zeros((3, 2)), jnp.zeros((3, 2)), jnp.tile(jnp.array([[20.0, 0.0]]), (3, 1))], axis=1)
         return Evaluation(fitness=jnp.repeat(g[:, None], 3, axis=1), descriptor=desc, length=jnp.full((3, 3), 30))
 
-    new = reassess(rep, stub, jax.random.PRNGKey(0))
+    new, scores = reassess(rep, stub, jax.random.PRNGKey(0))
     # all three collapse into cell 0, which keeps the fittest (genotype 3, mean fitness 3)
     np.testing.assert_array_equal(new.filled, [True, False, False])
     np.testing.assert_allclose(new.fitnesses[0], 3.0)
     np.testing.assert_allclose(new.genotypes["g"][0], 3.0)
+    # descriptors (0,0), (0,0), (20,0): pairwise distances 0, 20, 20, spread 40/3 for every solution
+    np.testing.assert_allclose(scores.spread, [40.0 / 3] * 3, rtol=1e-6)
 
 
 def test_me_low_spread_and_sampling_run_and_keep_their_invariants():

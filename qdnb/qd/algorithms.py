@@ -24,6 +24,7 @@ evaluation)``, pure functions ready for ``jit``, ``vmap`` over seeds and
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -315,35 +316,42 @@ def run_seeds(
     keys: jax.Array,
     num_iterations: int,
     chunk_size: int,
-    track_bins: tuple[int, ...],
-    target: tuple[float, ...],
+    track_bins: tuple[int, ...] | None = None,
+    target: tuple[float, ...] | None = None,
     progress: bool = True,
     desc: str | None = None,
+    keep_evaluations: bool = True,
 ):
     """Run one algorithm for several seeds at once (``vmap`` over ``keys``).
 
-    Besides the algorithm's own metrics, every evaluated descriptor is tracked on
-    a fixed regular grid of ``track_bins`` cells over the environment's
-    descriptor bounds (see ``ExplorationTrack``), with the smallest distance to
-    ``target``.  Returns the final states and a history dict whose arrays have
-    shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the initial batch.
+    Besides the algorithm's own metrics, when ``track_bins`` is given every
+    evaluated descriptor is tracked on a fixed regular grid of ``track_bins``
+    cells over the environment's descriptor bounds (see ``ExplorationTrack``),
+    with the smallest distance to ``target``; ``keep_evaluations`` keeps the
+    descriptors and fitnesses of every evaluated solution.  Returns the final
+    states, the tracks (``None`` without ``track_bins``) and a history dict whose
+    arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
+    initial batch.
     """
     from qdnb.loops import scan_in_chunks
     from qdnb.qd.metrics import ExplorationTrack
 
     env = algorithm.env
-    num_cells = int(jnp.prod(jnp.asarray(track_bins)))
     low, high = env.descriptor_low, env.descriptor_high
 
     def record(state, track, ev):
-        track = track.update(ev.descriptor, track_bins, low, high, target)
-        out = {"coverage": track.coverage, "min_distance": track.min_distance,
-               "descriptors": ev.descriptor, "fitnesses": ev.fitness, **algorithm.metrics(state)}
+        out = dict(algorithm.metrics(state))
+        if track_bins is not None:
+            track = track.update(ev.descriptor, track_bins, low, high, target)
+            out.update(coverage=track.coverage, min_distance=track.min_distance)
+        if keep_evaluations:
+            out.update(descriptors=ev.descriptor, fitnesses=ev.fitness)
         return track, out
 
     def init(key):
         state, ev = algorithm.init(key)
-        track, out = record(state, ExplorationTrack.create(num_cells), ev)
+        track = None if track_bins is None else ExplorationTrack.create(math.prod(track_bins))
+        track, out = record(state, track, ev)
         return (state, track), out
 
     def step(carry):

@@ -119,7 +119,7 @@ def insert_low_spread(lsr: LowSpreadRepertoire, genotypes: Any, scores: LowSprea
 
 
 def reassess(repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any], key: jax.Array
-             ) -> Repertoire:
+             ) -> tuple[Repertoire, LowSpreadScores]:
     """The reassessment of Table 4.5: play every stored solution again over fresh
     episodes and insert it into an empty repertoire of the same cells.
 
@@ -127,13 +127,15 @@ def reassess(repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any
     shape ``(N, E)`` and ``descriptor`` ``(N, E, d)``.  Each solution is filed, as
     in Low-Spread, under its most frequent cell with its mean fitness, and the
     cell keeps the fittest (plain MAP-Elites insertion, the same for every
-    algorithm's repertoire).  Empty cells of the original stay out.
+    algorithm's repertoire).  Empty cells of the original stay out.  Returns the
+    new repertoire and the scores of the re-evaluation, cell by cell of the
+    original (their ``spread`` is each stored solution's measured spread).
     """
     ev = evaluate_fn(repertoire.genotypes, key)
     scores = low_spread_scores(repertoire.centroids, ev.fitness, ev.descriptor)
     fitness = jnp.where(repertoire.filled, scores.fitness, -jnp.inf)
     empty = init_repertoire(repertoire.centroids, jax.tree.map(lambda x: x[0], repertoire.genotypes))
-    return insert(empty, repertoire.genotypes, fitness, scores.descriptor)[0]
+    return insert(empty, repertoire.genotypes, fitness, scores.descriptor)[0], scores
 
 
 @struct.dataclass
