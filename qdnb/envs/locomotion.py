@@ -21,6 +21,10 @@ differ only by their start.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import os
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,10 +35,33 @@ import numpy as np
 from qdnb.envs.base import Env, EnvState
 
 
-def _brax_env(name: str, backend: str, **kwargs):
-    from brax import envs
+@contextlib.contextmanager
+def _quiet():
+    """Silence what brax and MuJoCo print while loading a model: brax's notice
+    that it is no longer maintained, its failed optional ``warp`` import, and
+    MuJoCo's (C-level) deprecation warning about the model's ``settotalmass``.
+    Exceptions still propagate."""
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+            contextlib.redirect_stderr(io.StringIO()):
+        warnings.filterwarnings("ignore", message="Brax System", category=UserWarning)
+        saved = [os.dup(fd) for fd in (1, 2)]
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            for fd in (1, 2):
+                os.dup2(null, fd)
+            yield
+        finally:
+            for fd, old in zip((1, 2), saved):
+                os.dup2(old, fd)
+                os.close(old)
+            os.close(null)
 
-    return envs.get_environment(name, backend=backend, **kwargs)
+
+def _brax_env(name: str, backend: str, **kwargs):
+    with _quiet():
+        from brax import envs
+
+        return envs.get_environment(name, backend=backend, **kwargs)
 
 
 @dataclass(frozen=True, eq=False)
