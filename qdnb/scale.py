@@ -41,12 +41,81 @@ class PrimerConfig:
     fitness_offset: float = -600.0
 
 
+@dataclass(frozen=True)
+class ReproducibilityConfig:
+    """Chapter 4 reproducibility: ME, ME-LS, PGA-ME, PGA-ME-LS and ME-Sampling on
+    Ant-Omni and Halfcheetah-Uni (Tables 4.1 and 4.2 at ``paper`` scale).
+
+    ``env_batch`` is the number of episodes every method plays per iteration
+    (Tables 4.1/4.2's "environment batch size"): ME and PGA-ME evaluate
+    ``env_batch`` policies once, the multi-episode methods ``env_batch //
+    num_episodes`` policies ``num_episodes`` times, so all methods get the same
+    number of environment steps.
+    """
+
+    num_seeds: int
+    num_iterations: int
+    env_batch: int
+    num_episodes: int
+    num_cells: int
+    chunk_size: int
+    environments: tuple[str, ...] = ("ant_omni", "halfcheetah_uni")
+    episode_length: int = 250
+    policy_hidden: tuple[int, ...] = (256, 256)
+    iso_sigma: float = 0.005
+    line_sigma: float = 0.05
+    # PGA-ME and PGA-ME-LS (Table 4.2); TD3's own defaults for the rest (Section 2.3.5)
+    policy_lr: float = 1e-3
+    critic_lr: float = 3e-4
+    critic_hidden: tuple[int, ...] = (256, 256)
+    policy_noise: float = 0.2
+    noise_clip: float = 0.5
+    discount: float = 0.99
+    pg_proportion: float = 0.5
+    num_critic_steps: int = 300
+    num_pg_steps: int = 100
+    td3_batch_size: int = 256
+    buffer_size: int = 1_000_000
+    cvt_samples: int = 50_000
+    cvt_iterations: int = 30
+    # evaluation of the final repertoires (Section 4.5.2, Table 4.5, Figures 4.3-4.5)
+    ant_omni_goals: int = 100
+    halfcheetah_uni_goals: int = 50
+    accuracy_episodes: int = 10
+    reassess_episodes: int = 10
+    representative_episodes: int = 30
+
+    def __post_init__(self):
+        if self.env_batch % self.num_episodes:
+            raise ValueError(f"env_batch ({self.env_batch}) must be a multiple of num_episodes ({self.num_episodes})")
+        if self.env_batch // self.num_episodes < 2:
+            raise ValueError("env_batch // num_episodes must be at least 2 (one PG and one GA offspring)")
+
+    def goals(self, env_name: str) -> int:
+        return getattr(self, f"{env_name}_goals")
+
+
 _CONFIGS: dict[str, dict[str, object]] = {
     "ch2_primer": {
         "tiny": PrimerConfig(num_seeds=2, num_iterations=40, batch_size=64, chunk_size=20, ns_population=64),
         "small": PrimerConfig(num_seeds=5, num_iterations=2000, batch_size=256, chunk_size=100),
         "paper": PrimerConfig(num_seeds=10, num_iterations=1000, batch_size=1024, chunk_size=100,
                               ns_population=1024, ns_archive_size=5000),
+    },
+    "ch4_reproducibility": {
+        "tiny": ReproducibilityConfig(
+            num_seeds=1, num_iterations=3, env_batch=16, num_episodes=4, num_cells=32, chunk_size=3,
+            episode_length=50, policy_hidden=(16, 16), critic_hidden=(32, 32), num_critic_steps=10,
+            num_pg_steps=5, td3_batch_size=32, buffer_size=20_000, cvt_samples=2_000, cvt_iterations=10,
+            ant_omni_goals=10, halfcheetah_uni_goals=8, accuracy_episodes=3, reassess_episodes=3,
+            representative_episodes=6),
+        "small": ReproducibilityConfig(
+            num_seeds=2, num_iterations=25, env_batch=64, num_episodes=4, num_cells=128, chunk_size=5,
+            policy_hidden=(64, 64), critic_hidden=(64, 64), num_critic_steps=150, num_pg_steps=50,
+            td3_batch_size=128, buffer_size=100_000, cvt_samples=20_000, accuracy_episodes=5,
+            reassess_episodes=3),
+        "paper": ReproducibilityConfig(
+            num_seeds=5, num_iterations=1000, env_batch=1000, num_episodes=10, num_cells=1024, chunk_size=20),
     },
 }
 
