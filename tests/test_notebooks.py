@@ -22,3 +22,12 @@ def test_notebook_runs_at_tiny_scale(name):
             assert 0.0 < r["coverage"] <= 1.0
             assert r["min_distance_to_goal"] >= 0.0
         assert summary["results"]["env_steps"] > 0
+    if name == "ch4_reproducibility":
+        for env in ("ant_omni", "halfcheetah_uni"):
+            for method in ("ME", "ME-LS", "PGA-ME", "PGA-ME-LS", "ME-Sampling"):
+                r = summary["results"][env][method]
+                assert r["avg_distance"] >= 0.0 and r["avg_spread"] >= 0.0
+                assert 0.0 < r["coverage"] <= 1.0 and r["env_steps"] > 0
+                assert set(r["reassessed"]) == {"coverage", "max_fitness", "qd_score"}
+                assert r["reassessed"]["coverage"] <= r["coverage"]  # re-insertion can only merge cells
+                assert (out.parent / f"repertoire_{env}_{method}.npz").exists()
