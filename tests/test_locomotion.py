@@ -77,3 +77,14 @@ def test_halfcheetah_reward_is_forward_speed_minus_action_norm(cheetah):
     expected = forward - np.linalg.norm(np.clip(np.asarray(action), -1, 1))
     np.testing.assert_allclose(nxt.reward, expected, rtol=1e-5)
     assert int(nxt.steps) == 1 and not bool(nxt.done)
+
+
+def test_loading_models_from_threads_leaves_stdout_and_stderr_alone():
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    before = [os.fstat(fd) for fd in (1, 2)]
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(lambda name: make_env(name), ["ant_omni", "halfcheetah_uni"] * 2))
+    after = [os.fstat(fd) for fd in (1, 2)]
+    assert [(s.st_dev, s.st_ino) for s in after] == [(s.st_dev, s.st_ino) for s in before]

@@ -87,3 +87,11 @@ def test_repertoires_round_trip_without_pickle(tmp_path):
         np.testing.assert_array_equal(a, b)
     assert jax.tree.structure(loaded["genotypes"]) == jax.tree.structure(jax.device_get(stacked.genotypes))
     assert load_repertoires(path, "another hash") is None
+
+
+def test_run_environments_rejects_unknown_environments_before_computing():
+    from qdnb.qd.reproducibility import run_environments
+
+    cfg = dataclasses.replace(scale.config("ch4_reproducibility", "tiny"), environments=("ant_omni", "antmaze_typo"))
+    with pytest.raises(ValueError, match="antmaze_typo"):
+        run_environments(cfg, jax.random.PRNGKey(0))

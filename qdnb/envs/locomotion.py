@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import threading
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -35,13 +36,18 @@ import numpy as np
 from qdnb.envs.base import Env, EnvState
 
 
+_QUIET_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _quiet():
     """Silence what brax and MuJoCo print while loading a model: brax's notice
     that it is no longer maintained, its failed optional ``warp`` import, and
     MuJoCo's (C-level) deprecation warning about the model's ``settotalmass``.
-    Exceptions still propagate."""
-    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+    Exceptions still propagate.  The swap of the process's file descriptors is
+    serialised, so that models loaded from several threads at once cannot leave
+    stdout or stderr pointing at ``/dev/null``."""
+    with _QUIET_LOCK, warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
             contextlib.redirect_stderr(io.StringIO()):
         warnings.filterwarnings("ignore", message="Brax System", category=UserWarning)
         saved = [os.dup(fd) for fd in (1, 2)]

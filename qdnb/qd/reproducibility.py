@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from qdnb.envs import make_env
+from qdnb.envs import env_names, make_env
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import Evaluation, evaluate_policies
 from qdnb.provenance import load_arrays, save_arrays
@@ -143,10 +143,6 @@ class Player:
         return evaluate_fn
 
 
-def _numpy(tree: Any) -> Any:
-    return jax.tree.map(np.asarray, jax.device_get(tree))
-
-
 def run_environment(cfg: ReproducibilityConfig, env_name: str, key: jax.Array, progress: bool = True,
                     methods: tuple[str, ...] = METHODS) -> dict[str, Any]:
     """Every method on ``env_name`` for ``cfg.num_seeds`` seeds, and the tests of
@@ -188,15 +184,15 @@ def run_environment(cfg: ReproducibilityConfig, env_name: str, key: jax.Array, p
         played = player.episodes(cfg.representative_episodes)(jax.tree.map(lambda x: x[cells], seed0.genotypes),
                                                                 k_rep)
         result = {
-            "history": _numpy({k: history[k] for k in ("coverage", "max_fitness", "qd_score")}),
-            "repertoire": _numpy(elites),
+            "history": jax.device_get({k: history[k] for k in ("coverage", "max_fitness", "qd_score")}),
+            "repertoire": jax.device_get(elites),
             "spread_at_insertion": (np.asarray(states.repertoire.spreads) if name in LOW_SPREAD
                                     else np.full(np.shape(elites.fitnesses), np.nan)),
-            "accuracy": _numpy(acc),
-            "reassessed": _numpy(reassessed),
+            "accuracy": jax.device_get(acc),
+            "reassessed": jax.device_get(reassessed),
             "reassessed_spread": np.where(np.asarray(elites.filled), np.asarray(scores.spread), np.nan),
-            "metrics": _numpy(metrics_fn(elites)),
-            "metrics_reassessed": _numpy(metrics_fn(reassessed)),
+            "metrics": jax.device_get(metrics_fn(elites)),
+            "metrics_reassessed": jax.device_get(metrics_fn(reassessed)),
             "representatives": {
                 "cells": cells,
                 "stored_descriptor": np.asarray(seed0.descriptors)[cells],
@@ -216,9 +212,10 @@ def run_environments(cfg: ReproducibilityConfig, key: jax.Array, progress: bool 
     """``run_environment`` for each of ``cfg.environments``, each with its own
     key (``fold_in`` of the environment's index), in concurrent threads unless
     ``concurrent`` is false.  The numbers do not depend on the concurrency."""
+    unknown = set(cfg.environments) - set(env_names())
+    if unknown:  # before any thread starts computing
+        raise ValueError(f"unknown environments {sorted(unknown)}; valid: {', '.join(env_names())}")
     keys = {name: jax.random.fold_in(key, i) for i, name in enumerate(cfg.environments)}
-    for name in cfg.environments:
-        make_env(name)  # build (and validate) every environment in this thread first
     if not concurrent:
         return {name: run_environment(cfg, name, keys[name], progress) for name in cfg.environments}
     with ThreadPoolExecutor(max_workers=len(cfg.environments)) as pool:
