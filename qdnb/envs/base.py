@@ -43,6 +43,9 @@ class Env:
     episode_length: int
     descriptor_low: tuple[float, ...]
     descriptor_high: tuple[float, ...]
+    # How an episode's fitness is read from its rewards: "return" (their sum) or
+    # "max_reward" (the best single reward, Ant-Maze's performance, Section 3.6.1).
+    fitness_mode: str = "return"
 
     def reset(self, key: jax.Array) -> EnvState:
         raise NotImplementedError

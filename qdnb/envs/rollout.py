@@ -17,7 +17,8 @@ PolicyApply = Callable[[Any, jax.Array], jax.Array]
 class Evaluation:
     """What one episode (or a batch of them, with leading axes) returns.
 
-    ``fitness`` is the episode return, ``descriptor`` the behaviour descriptor,
+    ``fitness`` is the episode return (or its best reward, for environments
+    whose ``fitness_mode`` is ``"max_reward"``), ``descriptor`` the behaviour descriptor,
     ``length`` the number of steps before the episode ended.  ``trajectory`` is
     ``None`` unless asked for: then a dict of per-step ``obs``, ``action``,
     ``reward``, ``next_obs``, ``done``, ``state_descriptor`` and ``valid``.
@@ -35,6 +36,7 @@ def evaluate_policies(
     params: Any,
     key: jax.Array,
     return_trajectory: bool = False,
+    exploration_noise: jax.Array | float = 0.0,
 ) -> Evaluation:
     """Evaluate a batch of deterministic policies (leading axis of every leaf of
     ``params``), one episode each, each from its own random initial state.
@@ -48,16 +50,28 @@ def evaluate_policies(
     per-step arrays, with shape ``(batch, time, ...)``, are only stacked when
     ``return_trajectory`` asks (``valid`` marks the steps taken while alive,
     ``terminal`` the ends that are not the time limit, for bootstrapping).
+
+    ``exploration_noise`` (a scalar or one value per policy) adds Gaussian noise
+    of that standard deviation to the actions (TD3's exploration), drawn from a
+    key per episode folded with the step number.
     """
     batch = jax.tree.leaves(params)[0].shape[0]
-    states = jax.vmap(env.reset)(jax.random.split(key, batch))
+    k_reset, k_noise = jax.random.split(key)
+    states = jax.vmap(env.reset)(jax.random.split(k_reset if _noisy(exploration_noise) else key, batch))
+    sigma = jnp.broadcast_to(jnp.asarray(exploration_noise, jnp.float32), (batch,))
+    noise_keys = jax.random.split(k_noise, batch)
+    use_max = env.fitness_mode == "max_reward"
 
-    def one_env(params, carry):
+    def one_env(params, sigma, noise_key, carry):
         state, alive, ret, length, sd_sum, last_sd = carry
         action = policy_apply(params, state.obs)
+        if _noisy(exploration_noise):
+            noise = jax.random.normal(jax.random.fold_in(noise_key, state.steps), action.shape)
+            action = jnp.clip(action + sigma * noise, -1.0, 1.0)
         nxt = env.step(state, action)
         reward = jnp.where(alive, nxt.reward, 0.0)
-        carry = (nxt, alive & ~nxt.done, ret + reward, length + alive,
+        fit = jnp.where(alive, jnp.maximum(ret, nxt.reward), ret) if use_max else ret + reward
+        carry = (nxt, alive & ~nxt.done, fit, length + alive,
                  sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
                  jnp.where(alive, nxt.state_descriptor, last_sd))
         out = None
@@ -68,9 +82,10 @@ def evaluate_policies(
         return carry, out
 
     step = jax.vmap(one_env)
-    init = (states, ~states.done, jnp.zeros((batch,)), jnp.zeros((batch,), jnp.int32),
+    ret0 = jnp.full((batch,), -jnp.inf) if use_max else jnp.zeros((batch,))
+    init = (states, ~states.done, ret0, jnp.zeros((batch,), jnp.int32),
             jnp.zeros_like(states.state_descriptor), states.state_descriptor)
-    (_, _, ret, length, sd_sum, last_sd), traj = jax.lax.scan(lambda c, _: step(params, c), init, None,
+    (_, _, ret, length, sd_sum, last_sd), traj = jax.lax.scan(lambda c, _: step(params, sigma, noise_keys, c), init, None,
                                                                   length=env.episode_length)
     if return_trajectory:
         traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)
@@ -80,6 +95,11 @@ def evaluate_policies(
         length=length,
         trajectory=traj,
     )
+
+
+def _noisy(exploration_noise) -> bool:
+    """Whether exploration noise is asked for (a traced array always counts)."""
+    return not (isinstance(exploration_noise, (int, float)) and exploration_noise == 0.0)
 
 
 def rollout(env: Env, policy_apply: PolicyApply, params: Any, key: jax.Array,

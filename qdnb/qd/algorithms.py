@@ -328,7 +328,8 @@ def run_seeds(
     evaluated descriptor is tracked on a fixed regular grid of ``track_bins``
     cells over the environment's descriptor bounds (see ``ExplorationTrack``),
     with the smallest distance to ``target``; ``keep_evaluations`` keeps the
-    descriptors and fitnesses of every evaluated solution.  Returns the final
+    descriptors and fitnesses of every evaluated solution.  ``env_steps`` counts
+    the environment steps taken in each iteration.  Returns the final
     states, the tracks (``None`` without ``track_bins``) and a history dict whose
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
     initial batch.
@@ -340,7 +341,7 @@ def run_seeds(
     low, high = env.descriptor_low, env.descriptor_high
 
     def record(state, track, ev):
-        out = dict(algorithm.metrics(state))
+        out = dict(algorithm.metrics(state), env_steps=jnp.sum(ev.length))
         if track_bins is not None:
             track = track.update(ev.descriptor, track_bins, low, high, target)
             out.update(coverage=track.coverage, min_distance=track.min_distance)

@@ -20,7 +20,10 @@ class ReplayBuffer:
     size: jax.Array
 
     @classmethod
-    def create(cls, capacity: int, observation_size: int, action_size: int) -> "ReplayBuffer":
+    def create(cls, capacity: int, observation_size: int, action_size: int,
+               descriptor_size: int = 0) -> "ReplayBuffer":
+        """An empty buffer; with ``descriptor_size`` it also stores each
+        transition's ``state_descriptor`` (QD-PG's novelty rewards, Eq. 3.5)."""
         data = {
             "obs": jnp.zeros((capacity, observation_size)),
             "action": jnp.zeros((capacity, action_size)),
@@ -28,6 +31,8 @@ class ReplayBuffer:
             "next_obs": jnp.zeros((capacity, observation_size)),
             "terminal": jnp.zeros((capacity,)),
         }
+        if descriptor_size:
+            data["state_descriptor"] = jnp.zeros((capacity, descriptor_size))
         return cls(data, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
 
     @property

@@ -9,7 +9,7 @@ separate: ``critic_step`` trains the shared critic on replay batches and
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import flax.linen as nn
 import jax
@@ -31,6 +31,11 @@ class TD3Config:
     actor_lr: float = 3e-4
     batch_size: int = 256
     critic_hidden: tuple[int, ...] = (256, 256)
+    optimizer: str = "adam"  # or "sgd" (plain stochastic gradient descent, Table 3.2)
+
+    def __post_init__(self):
+        if self.optimizer not in ("adam", "sgd"):
+            raise ValueError(f"unknown optimizer {self.optimizer!r}; valid: adam, sgd")
 
 
 class TwinCritic(nn.Module):
@@ -76,13 +81,16 @@ class TD3:
     def critic(self) -> TwinCritic:
         return TwinCritic(self.config.critic_hidden)
 
+    def _optimizer(self, learning_rate: float):
+        return (optax.adam if self.config.optimizer == "adam" else optax.sgd)(learning_rate)
+
     @property
     def actor_optimizer(self):
-        return optax.adam(self.config.actor_lr)
+        return self._optimizer(self.config.actor_lr)
 
     @property
     def critic_optimizer(self):
-        return optax.adam(self.config.critic_lr)
+        return self._optimizer(self.config.critic_lr)
 
     def init(self, key: jax.Array) -> TD3State:
         k_a, k_c = jax.random.split(key)
@@ -148,13 +156,19 @@ class TD3:
         (actor, _), _ = jax.lax.scan(one, (actor, opt.init(actor)), jax.random.split(key, num_steps))
         return actor
 
-    def train_critic(self, state: TD3State, buffer, key: jax.Array, num_steps: int) -> tuple[TD3State, jax.Array]:
+    def train_critic(self, state: TD3State, buffer, key: jax.Array, num_steps: int,
+                     reward_fn: Callable[[dict], jax.Array] | None = None) -> tuple[TD3State, jax.Array]:
         """``num_steps`` critic steps (with the delayed actor/target updates) on
-        replay batches; returns the mean critic loss."""
+        replay batches; returns the mean critic loss.  ``reward_fn(batch)``, when
+        given, replaces each sampled batch's rewards (QD-PG's fresh novelty
+        rewards, Eq. 3.5)."""
 
         def one(s, k):
             k_batch, k_noise = jax.random.split(k)
-            return self.critic_step(s, buffer.sample(k_batch, self.config.batch_size), k_noise)
+            batch = buffer.sample(k_batch, self.config.batch_size)
+            if reward_fn is not None:
+                batch = {**batch, "reward": reward_fn(batch)}
+            return self.critic_step(s, batch, k_noise)
 
         state, losses = jax.lax.scan(one, state, jax.random.split(key, num_steps))
         return state, jnp.mean(losses)
