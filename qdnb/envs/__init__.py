@@ -20,10 +20,24 @@ def _halfcheetah_uni(**kwargs) -> Env:
     return HalfcheetahUni(**kwargs)
 
 
+def _antmaze(**kwargs) -> Env:
+    from qdnb.envs.mazes import AntMaze
+
+    return AntMaze(**kwargs)
+
+
+def _anttrap(**kwargs) -> Env:
+    from qdnb.envs.mazes import AntTrap
+
+    return AntTrap(**kwargs)
+
+
 _REGISTRY: dict[str, Callable[..., Env]] = {
     "pointmaze": PointMaze,
     "ant_omni": _ant_omni,
     "halfcheetah_uni": _halfcheetah_uni,
+    "antmaze": _antmaze,
+    "anttrap": _anttrap,
 }
 
 
