@@ -95,6 +95,97 @@ class ReproducibilityConfig:
         return getattr(self, f"{env_name}_goals")
 
 
+@dataclass(frozen=True)
+class QDPGTask:
+    """Per-environment settings of Chapter 3 (Table 3.2 at ``paper`` scale).
+
+    ``num_steps`` is the environment-step budget of every method; each iteration
+    plays ``num_actors`` episodes of ``episode_length`` steps at most, so a run
+    has ``num_steps // (num_actors * episode_length)`` iterations.  Per
+    iteration each critic in use takes ``num_critic_steps`` TD3 steps and each
+    actor ``num_pg_steps`` actor steps; at ``paper`` scale both are Table 3.2's
+    gradient-steps ratio times the episode length (4 x 200 on Point-Maze,
+    0.1 x 3000 on the ants).
+    """
+
+    num_steps: int
+    episode_length: int
+    num_actors: int
+    bins: int
+    policy_hidden: tuple[int, ...]
+    critic_hidden: tuple[int, ...]
+    optimizer: str
+    learning_rate: float
+    buffer_size: int
+    num_critic_steps: int
+    num_pg_steps: int
+    archive_threshold: float
+
+    @property
+    def num_iterations(self) -> int:
+        return self.num_steps // (self.num_actors * self.episode_length)
+
+
+POINTMAZE_PAPER = QDPGTask(num_steps=1_000_000, episode_length=200, num_actors=4, bins=5, policy_hidden=(64, 32),
+                           critic_hidden=(64, 32), optimizer="sgd", learning_rate=6e-3, buffer_size=1_000_000,
+                           num_critic_steps=800, num_pg_steps=800, archive_threshold=1e-4)
+ANT_PAPER = QDPGTask(num_steps=100_000_000, episode_length=3000, num_actors=10, bins=7, policy_hidden=(256, 256),
+                     critic_hidden=(256, 256), optimizer="sgd", learning_rate=3e-4, buffer_size=500_000,
+                     num_critic_steps=300, num_pg_steps=300, archive_threshold=0.1)
+
+
+@dataclass(frozen=True)
+class QDPGConfig:
+    """Chapter 3: QD-PG, its ablations, TD3 and PGA-ME on Point-Maze, Ant-Maze and
+    Ant-Trap (Table 3.2 at ``paper`` scale), and the fast-adaptation search.
+
+    ``ant_methods`` are the methods run on the two ant mazes (every method runs
+    on Point-Maze).  PGA-ME uses the same networks, buffer and gradient steps as
+    QD-PG, and iso+line variation for its genetic half.
+    """
+
+    num_seeds: int
+    chunk_size: int
+    pointmaze: QDPGTask
+    antmaze: QDPGTask
+    anttrap: QDPGTask
+    ant_methods: tuple[str, ...] = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
+    archive_size: int = 10_000
+    archive_k: int = 10
+    td3_batch_size: int = 256
+    discount: float = 0.99
+    tau: float = 0.005
+    policy_delay: int = 2
+    exploration_noise: float = 0.1
+    iso_sigma: float = 0.005
+    line_sigma: float = 0.05
+    adaptation_goals: int = 100
+    adaptation_budget: int = 20
+
+    def __post_init__(self):
+        for name in ("pointmaze", "antmaze", "anttrap"):
+            task = getattr(self, name)
+            if task.num_iterations < 1:
+                raise ValueError(f"{name}: a budget of {task.num_steps} steps is less than one iteration "
+                                 f"({task.num_actors} actors x {task.episode_length} steps)")
+            if task.optimizer not in ("adam", "sgd"):
+                raise ValueError(f"{name}: unknown optimizer {task.optimizer!r}; valid: adam, sgd")
+        unknown = set(self.ant_methods) - set(QDPG_METHODS)
+        if unknown:
+            raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(QDPG_METHODS)}")
+
+    def task(self, env_name: str) -> QDPGTask:
+        if env_name not in ("pointmaze", "antmaze", "anttrap"):
+            raise ValueError(f"unknown environment {env_name!r}; valid: pointmaze, antmaze, anttrap")
+        return getattr(self, env_name)
+
+    def methods(self, env_name: str) -> tuple[str, ...]:
+        return QDPG_METHODS if env_name == "pointmaze" else self.ant_methods
+
+
+QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
+
+
 _CONFIGS: dict[str, dict[str, object]] = {
     "ch2_primer": {
         "tiny": PrimerConfig(num_seeds=2, num_iterations=40, batch_size=64, chunk_size=20, ns_population=64),
@@ -116,6 +207,31 @@ _CONFIGS: dict[str, dict[str, object]] = {
             reassess_episodes=3),
         "paper": ReproducibilityConfig(
             num_seeds=5, num_iterations=1000, env_batch=1000, num_episodes=10, num_cells=1024, chunk_size=20),
+    },
+    "ch3_qdpg": {
+        "tiny": QDPGConfig(
+            num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"), adaptation_goals=20, adaptation_budget=10,
+            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=8_000, policy_hidden=(16, 16),
+                                          critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3,
+                                          buffer_size=20_000, num_critic_steps=10, num_pg_steps=10),
+            antmaze=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
+                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3,
+                                        buffer_size=10_000, num_critic_steps=10, num_pg_steps=10),
+            anttrap=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
+                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3,
+                                        buffer_size=10_000, num_critic_steps=10, num_pg_steps=10)),
+        "small": QDPGConfig(
+            num_seeds=2, chunk_size=25,
+            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=400_000, optimizer="adam", learning_rate=1e-3,
+                                          buffer_size=400_000, num_critic_steps=50, num_pg_steps=50),
+            antmaze=dataclasses.replace(ANT_PAPER, num_steps=300_000, episode_length=500, policy_hidden=(64, 64),
+                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=1e-3,
+                                        buffer_size=300_000, num_critic_steps=50, num_pg_steps=50),
+            anttrap=dataclasses.replace(ANT_PAPER, num_steps=300_000, episode_length=500, policy_hidden=(64, 64),
+                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=1e-3,
+                                        buffer_size=300_000, num_critic_steps=50, num_pg_steps=50)),
+        "paper": QDPGConfig(num_seeds=5, chunk_size=50, pointmaze=POINTMAZE_PAPER, antmaze=ANT_PAPER,
+                            anttrap=dataclasses.replace(ANT_PAPER, episode_length=1000)),
     },
 }
 

@@ -1,0 +1,144 @@
+"""Chapter 3's experiment: QD-PG, its ablations, TD3 and PGA-ME on one environment.
+
+``run_environment(cfg, env_name, key)`` runs every method of the config on the
+same environment-step budget (``num_seeds`` seeds at once, ``vmap``), and
+returns, per method, the history of every iteration (performance, grid
+coverage, environment steps, every evaluated policy's descriptor and fitness)
+and the final MAP-Elites grids.
+
+Performance follows Table 3.4: the episode return on Point-Maze and Ant-Trap,
+the best reward of the episode (minus the closest distance to the goal) on
+Ant-Maze.  For the MAP-Elites methods the performance at an iteration is the
+best solution of the grid; for TD3 it is the greedy episode of its actor.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from qdnb.envs import make_env
+from qdnb.envs.base import Env
+from qdnb.qd.algorithms import PGAMapElites, run_seeds
+from qdnb.qd.cvt import grid_centroids
+from qdnb.rl.networks import MLP
+from qdnb.rl.qdpg import QDPG, TD3Agent
+from qdnb.rl.td3 import TD3Config
+from qdnb.scale import QDPG_METHODS, QDPGConfig
+
+ENVIRONMENTS = ("pointmaze", "antmaze", "anttrap")
+QDPG_UPDATES = {"QD-PG": "alternate", "QD-PG Sum": "sum", "D-PG": "diversity", "Q-PG": "quality"}
+
+
+def make_task_env(cfg: QDPGConfig, env_name: str) -> Env:
+    return make_env(env_name, episode_length=cfg.task(env_name).episode_length)
+
+
+def fitness_offset(env_name: str, env: Env) -> float:
+    """A lower bound of the performance, so that QD scores count every elite
+    positively: the whole episode at the far corner (Point-Maze), the far corner
+    of the maze (Ant-Maze), running backwards at 5 m/s (Ant-Trap)."""
+    span = float(np.linalg.norm(np.asarray(env.descriptor_high) - np.asarray(env.descriptor_low)))
+    return {"pointmaze": -span * env.episode_length, "antmaze": -span,
+            "anttrap": -5.0 * env.episode_length}[env_name]
+
+
+def build_algorithms(cfg: QDPGConfig, env_name: str, env: Env | None = None) -> dict[str, Any]:
+    """Every method of ``cfg`` on ``env_name``, with its Table 3.2 settings."""
+    task = cfg.task(env_name)
+    env = env if env is not None else make_task_env(cfg, env_name)
+    network = MLP(task.policy_hidden + (env.action_size,), activation="relu")
+    td3_config = TD3Config(gamma=cfg.discount, tau=cfg.tau, policy_delay=cfg.policy_delay,
+                           critic_lr=task.learning_rate, actor_lr=task.learning_rate,
+                           batch_size=cfg.td3_batch_size, critic_hidden=task.critic_hidden,
+                           optimizer=task.optimizer)
+    centroids = grid_centroids((task.bins, task.bins), env.descriptor_low, env.descriptor_high)
+    shared = dict(env=env, network=network, batch_size=task.num_actors, iso_sigma=cfg.iso_sigma,
+                  line_sigma=cfg.line_sigma, centroids=centroids, fitness_offset=fitness_offset(env_name, env))
+    algorithms: dict[str, Any] = {}
+    for method in cfg.methods(env_name):
+        if method in QDPG_UPDATES:
+            algorithms[method] = QDPG(
+                **shared, update=QDPG_UPDATES[method], td3_config=td3_config,
+                num_critic_steps=task.num_critic_steps, num_pg_steps=task.num_pg_steps,
+                buffer_size=task.buffer_size, archive_size=cfg.archive_size,
+                archive_threshold=task.archive_threshold, archive_k=cfg.archive_k)
+        elif method == "PGA-ME":
+            algorithms[method] = PGAMapElites(
+                **shared, td3_config=td3_config, num_critic_steps=task.num_critic_steps,
+                num_pg_steps=task.num_pg_steps, buffer_size=task.buffer_size)
+        elif method == "TD3":
+            algorithms[method] = TD3Agent(
+                env=env, network=network, td3_config=td3_config, num_episodes=task.num_actors,
+                num_critic_steps=task.num_critic_steps, exploration_noise=cfg.exploration_noise,
+                buffer_size=task.buffer_size)
+        else:
+            raise ValueError(f"unknown method {method!r}; valid: {', '.join(QDPG_METHODS)}")
+    return algorithms
+
+
+def final_grid(state: Any) -> dict[str, np.ndarray] | None:
+    """The final MAP-Elites grid of a run (leading axis: seeds), on the host."""
+    rep = getattr(state, "repertoire", None)
+    if rep is None:
+        return None
+    return jax.device_get({"genotypes": rep.genotypes, "fitnesses": rep.fitnesses,
+                           "descriptors": rep.descriptors, "centroids": rep.centroids})
+
+
+def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bool = True) -> dict[str, Any]:
+    """Run every method of ``cfg`` on ``env_name`` for ``cfg.num_seeds`` seeds.
+
+    Returns ``{"env", "env_name", "methods": {name: {"history", "grid",
+    "final_performance", "coverage", "env_steps", "seconds"}}}``; ``history``
+    arrays have shape ``(num_seeds, num_iterations + 1, ...)``.
+    """
+    task = cfg.task(env_name)
+    env = make_task_env(cfg, env_name)
+    algorithms = build_algorithms(cfg, env_name, env)
+    keys = jax.random.split(key, cfg.num_seeds)
+    out: dict[str, Any] = {"env": env, "env_name": env_name, "methods": {}}
+    for method, algo in algorithms.items():
+        start = time.perf_counter()
+        states, _, history = run_seeds(algo, keys, task.num_iterations - 1, cfg.chunk_size,
+                                       progress=progress, desc=f"{env_name} {method}")
+        history = jax.device_get(history)
+        seconds = time.perf_counter() - start
+        steps = np.cumsum(history["env_steps"], axis=1)
+        grid = final_grid(states)
+        out["methods"][method] = {
+            "history": history,
+            "grid": grid,
+            "final_performance": history["max_fitness"][:, -1],
+            "coverage": (np.mean(grid["fitnesses"] > -np.inf, axis=1) if grid is not None
+                         else grid_coverage(history["descriptors"], env, task.bins)),
+            "env_steps": steps[:, -1],
+            "cumulative_steps": steps,
+            "seconds": seconds,
+        }
+    return out
+
+
+def grid_coverage(descriptors: np.ndarray, env: Env, bins: int) -> np.ndarray:
+    """Fraction of the ``bins x bins`` grid cells reached by any evaluated
+    episode, per seed (``descriptors``: seeds x iterations x episodes x 2).  For
+    TD3, which keeps no grid, this is the grid it would have filled."""
+    low, high = np.asarray(env.descriptor_low), np.asarray(env.descriptor_high)
+    d = descriptors.reshape(descriptors.shape[0], -1, descriptors.shape[-1])
+    cells = np.clip(((d - low) / (high - low) * bins).astype(int), 0, bins - 1)
+    flat = cells[..., 0] * bins + cells[..., 1]
+    return np.array([len(np.unique(f)) / bins**2 for f in flat])
+
+
+def reached_goal(descriptors: np.ndarray) -> np.ndarray:
+    """Per seed, whether any evaluated Point-Maze episode ended in the goal zone
+    (an episode stops there, so its final position is in the zone)."""
+    from qdnb.envs.pointmaze import GOAL, GOAL_HALF_SIDE
+
+    d = descriptors.reshape(descriptors.shape[0], -1, 2)
+    inside = np.all(np.abs(d - np.asarray(GOAL)) <= GOAL_HALF_SIDE + 1e-6, axis=-1)
+    return inside.any(axis=1)

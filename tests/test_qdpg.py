@@ -1,0 +1,192 @@
+"""QD-PG (Algorithm 4): state-descriptor archive, novelty rewards, alternating
+updates, critic targets, the TD3 baseline and the Chapter 3 configs."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from qdnb.envs import make_env
+from qdnb.envs.rollout import evaluate_policies
+from qdnb.qd.cvt import grid_centroids
+from qdnb.qd.novelty import NoveltyArchive, k_smallest, knn_novelty
+from qdnb.rl.networks import MLP
+from qdnb.rl.qdpg import QDPG, TD3Agent, update_kinds
+from qdnb.rl.qdpg_experiment import build_algorithms, grid_coverage, reached_goal
+from qdnb.rl.td3 import TD3Config, td3_target
+from qdnb.scale import QDPGConfig, config
+
+
+def brute_force_novelty(queries, reference, k):
+    d = np.linalg.norm(np.asarray(queries, np.float64)[:, None] - np.asarray(reference, np.float64)[None], axis=-1)
+    return np.sort(d, axis=1)[:, :k].mean(axis=1)
+
+
+def test_archive_acceptance_and_fifo_replacement():
+    archive = NoveltyArchive.create(capacity=3, dim=2)
+    # k = 1: an item enters when its distance to the nearest archived item is > 0.5.
+    items = jnp.array([[0.0, 0.0], [0.2, 0.0], [1.0, 0.0], [1.0, 0.3], [3.0, 0.0], [5.0, 0.0]])
+    archive = archive.add(items, threshold=0.5, k=1)
+    # [0.2, 0] is 0.2 from [0, 0] and [1, 0.3] is 0.3 from [1, 0]: both refused.
+    # [5, 0] enters the full archive and replaces the oldest entry, [0, 0].
+    np.testing.assert_allclose(archive.data, [[5.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
+    assert int(archive.num_added) == 4 and int(archive.size) == 3
+    # Items flagged invalid are skipped even when novel.
+    again = archive.add(jnp.array([[9.0, 9.0], [20.0, 0.0]]), 0.5, 1, valid=jnp.array([False, True]))
+    np.testing.assert_allclose(again.data, [[5.0, 0.0], [20.0, 0.0], [3.0, 0.0]])
+
+
+def test_novelty_matches_brute_force_on_large_archives():
+    # 10,000 references take the blockwise k-smallest path; ties and duplicates included.
+    key = jax.random.PRNGKey(0)
+    reference = jnp.round(jax.random.uniform(key, (10_000, 2)) * 50) / 50  # many exact duplicates
+    queries = jax.random.uniform(jax.random.PRNGKey(1), (300, 2))
+    np.testing.assert_allclose(knn_novelty(queries, reference, 10), brute_force_novelty(queries, reference, 10),
+                               rtol=1e-5, atol=1e-7)
+    values = jax.random.normal(jax.random.PRNGKey(2), (7, 3_333))  # not a multiple of the block
+    np.testing.assert_allclose(k_smallest(values, 10), np.sort(np.asarray(values), axis=1)[:, :10], rtol=1e-6)
+    archive = NoveltyArchive.create(10_000, 2).replace(data=reference, num_added=jnp.asarray(10_000, jnp.int32))
+    np.testing.assert_allclose(archive.novelty(queries, 10), brute_force_novelty(queries, reference, 10), rtol=1e-5)
+
+
+def test_update_kinds_give_each_actor_one_kind():
+    for n in (4, 5, 10):
+        kinds = [np.asarray(update_kinds(jax.random.PRNGKey(i), n, "alternate")) for i in range(20)]
+        assert all(k.sum() == n // 2 for k in kinds)  # exactly half diversity, the rest quality
+        assert len({tuple(k) for k in kinds}) > 1  # the choice is redrawn
+    assert not update_kinds(jax.random.PRNGKey(0), 4, "quality").any()
+    assert not update_kinds(jax.random.PRNGKey(0), 4, "sum").any()
+    assert update_kinds(jax.random.PRNGKey(0), 4, "diversity").all()
+
+
+@pytest.fixture(scope="module")
+def maze():
+    return make_env("pointmaze", episode_length=10)
+
+
+def small_qdpg(env, update="alternate", **kw):
+    return QDPG(env=env, network=MLP((8, env.action_size), activation="relu"), batch_size=4, iso_sigma=0.0,
+                line_sigma=0.0, centroids=grid_centroids((5, 5), (-1, -1), (1, 1)), update=update,
+                td3_config=TD3Config(batch_size=16, critic_hidden=(8,), actor_lr=1e-2), num_critic_steps=4,
+                num_pg_steps=3, buffer_size=1000, archive_size=64, archive_threshold=1e-4, **kw)
+
+
+def test_each_actor_is_updated_against_the_critic_of_its_kind(maze):
+    algo = small_qdpg(maze)
+    state, _ = algo.init(jax.random.PRNGKey(0))
+    state = state.replace(d_critic=algo.td3.init(jax.random.PRNGKey(9)))  # two clearly different critics
+    parents = jax.tree.map(lambda x: x[:4], state.repertoire.genotypes)
+    parents = jax.tree.map(lambda x: jnp.broadcast_to(x[:1], x.shape), parents)  # four copies of one actor
+    diversity = jnp.array([True, False, False, True])
+    key = jax.random.PRNGKey(3)
+    out = algo.mutate(state, parents, diversity, key)
+    keys = jax.random.split(key, 4)
+    one = lambda t, i: jax.tree.map(lambda x: x[i], t)
+    for i in range(4):
+        critic = (state.d_critic if diversity[i] else state.q_critic).critic
+        other = (state.q_critic if diversity[i] else state.d_critic).critic
+        expected = algo.td3.policy_gradient_steps(one(parents, i), critic, state.buffer, keys[i], algo.num_pg_steps)
+        wrong = algo.td3.policy_gradient_steps(one(parents, i), other, state.buffer, keys[i], algo.num_pg_steps)
+        for a, b, c in zip(jax.tree.leaves(one(out, i)), jax.tree.leaves(expected), jax.tree.leaves(wrong)):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+        assert any(not np.allclose(a, c) for a, c in zip(jax.tree.leaves(one(out, i)), jax.tree.leaves(wrong)))
+
+
+def test_critic_targets_on_a_hand_checked_batch(maze):
+    algo = small_qdpg(maze, update="alternate", archive_k=2)
+    archive = NoveltyArchive.create(4, 2).replace(
+        data=jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]), num_added=jnp.asarray(4, jnp.int32))
+    batch = {"obs": jnp.zeros((2, 2)), "action": jnp.zeros((2, 2)), "next_obs": jnp.array([[0.1, 0.2], [0.3, -0.4]]),
+             "reward": jnp.array([-1.0, -2.0]), "terminal": jnp.array([0.0, 1.0]),
+             "state_descriptor": jnp.array([[0.0, 1.0], [1.0, 1.0]])}
+    # Novelty with K = 2: (0,1) is 1 from (0,0), 1 from (0,2), sqrt2 from (1,0) -> 1.0;
+    # (1,1) is 1 from (1,0), sqrt2 from (0,0) and from (0,2) -> (1 + sqrt2) / 2.
+    novelty = np.array([1.0, (1.0 + np.sqrt(2.0)) / 2])
+    np.testing.assert_allclose(algo.critic_rewards(archive, batch, "diversity"), novelty, rtol=1e-6)
+    np.testing.assert_allclose(algo.critic_rewards(archive, batch, "quality"), [-1.0, -2.0])
+    np.testing.assert_allclose(algo.critic_rewards(archive, batch, "sum"), novelty + [-1.0, -2.0], rtol=1e-6)
+    td3 = algo.td3
+    state = td3.init(jax.random.PRNGKey(0))
+    key = jax.random.PRNGKey(1)
+    for kind, r in (("quality", np.array([-1.0, -2.0])), ("diversity", novelty)):
+        y = td3.target(state.critic_target, state.actor_target,
+                       {**batch, "reward": algo.critic_rewards(archive, batch, kind)}, key)
+        # The same smoothed target action, by hand: y = r + gamma * (1 - terminal) * min(Q1', Q2').
+        a = td3.actor.apply(state.actor_target, batch["next_obs"])
+        noise = jnp.clip(0.2 * jax.random.normal(key, a.shape), -0.5, 0.5)
+        q1, q2 = td3.critic.apply(state.critic_target, batch["next_obs"], jnp.clip(a + noise, -1, 1))
+        hand = r + 0.99 * np.array([1.0, 0.0]) * np.minimum(q1, q2)
+        np.testing.assert_allclose(y, hand, rtol=1e-5)
+        np.testing.assert_allclose(y, td3_target(jnp.asarray(r), batch["terminal"], q1, q2, 0.99), rtol=1e-5)
+
+
+def test_qdpg_iterates_and_ablations_train_only_their_critics(maze):
+    for update, trains_q, trains_d in (("alternate", True, True), ("quality", True, False),
+                                      ("diversity", False, True), ("sum", True, False)):
+        algo = small_qdpg(maze, update)
+        state, ev0 = algo.init(jax.random.PRNGKey(0))
+        new, ev = jax.jit(algo.step)(state)
+        changed = lambda a, b: any(not np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+        assert changed(state.q_critic.critic, new.q_critic.critic) == trains_q, update
+        assert changed(state.d_critic.critic, new.d_critic.critic) == trains_d, update
+        # Every valid transition of both evaluations is in the buffer, with its state descriptor.
+        n_valid = int(ev0.length.sum() + ev.length.sum())
+        assert int(new.buffer.size) == n_valid
+        assert "state_descriptor" in new.buffer.data
+        np.testing.assert_allclose(new.buffer.data["state_descriptor"][: int(ev0.length[0])],
+                                   ev0.trajectory["state_descriptor"][0, : int(ev0.length[0])])
+        assert 0 < int(new.archive.size) <= n_valid
+        assert float(algo.metrics(new)["coverage"]) > 0
+
+
+def test_td3_agent_explores_around_its_greedy_episode(maze):
+    agent = TD3Agent(env=maze, network=MLP((8, 2), activation="relu"),
+                     td3_config=TD3Config(batch_size=16, critic_hidden=(8,)), num_episodes=3, num_critic_steps=4,
+                     exploration_noise=0.3, buffer_size=1000)
+    state, ev = agent.init(jax.random.PRNGKey(0))
+    actions = np.asarray(ev.trajectory["action"])
+    greedy = jax.vmap(lambda o: agent.network.apply(state.td3.actor, o))(ev.trajectory["obs"][0])
+    np.testing.assert_allclose(actions[0], greedy, rtol=1e-5, atol=1e-6)  # episode 0: no noise
+    others = jax.vmap(jax.vmap(lambda o: agent.network.apply(state.td3.actor, o)))(ev.trajectory["obs"][1:])
+    assert not np.allclose(actions[1:], others)  # the others explore
+    assert np.all(np.abs(actions) <= 1.0)
+    assert float(agent.metrics(state)["max_fitness"]) == float(ev.fitness[0])
+    new, _ = jax.jit(agent.step)(state)
+    assert int(new.buffer.size) > int(state.buffer.size)
+
+
+def test_exploration_noise_zero_is_the_deterministic_rollout(maze):
+    net = MLP((8, 2))
+    params = jax.vmap(lambda k: net.init(k, jnp.zeros(2)))(jax.random.split(jax.random.PRNGKey(0), 3))
+    a = evaluate_policies(maze, net.apply, params, jax.random.PRNGKey(1))
+    b = evaluate_policies(maze, net.apply, params, jax.random.PRNGKey(1), exploration_noise=0.0)
+    np.testing.assert_array_equal(a.fitness, b.fitness)
+
+
+def test_configs_and_helpers():
+    for scale in ("tiny", "small", "paper"):
+        cfg = config("ch3_qdpg", scale)
+        assert all(cfg.task(e).num_iterations >= 1 for e in ("pointmaze", "antmaze", "anttrap"))
+    paper = config("ch3_qdpg", "paper")
+    assert paper.pointmaze.num_steps == 1_000_000 and paper.antmaze.num_steps == 100_000_000
+    assert paper.pointmaze.num_critic_steps == 4 * 200 and paper.antmaze.num_pg_steps == 300  # ratio x length
+    assert paper.pointmaze.optimizer == "sgd" and paper.antmaze.bins == 7
+    with pytest.raises(ValueError, match="less than one iteration"):
+        dataclasses.replace(paper, pointmaze=dataclasses.replace(paper.pointmaze, num_steps=100))
+    with pytest.raises(ValueError, match="unknown methods"):
+        dataclasses.replace(paper, ant_methods=("QD-PG", "SAC"))
+    with pytest.raises(ValueError, match="unknown environment"):
+        paper.task("halfcheetah")
+    with pytest.raises(ValueError, match="unknown update"):
+        small_qdpg(make_env("pointmaze", episode_length=5), update="both")
+    with pytest.raises(ValueError, match="unknown optimizer"):
+        TD3Config(optimizer="rmsprop")
+    assert isinstance(paper, QDPGConfig)
+    env = make_env("pointmaze")
+    d = np.array([[[[-0.5, 0.8], [0.9, 0.9]]], [[[0.0, 0.0], [0.1, 0.1]]]])  # seeds x iterations x episodes x 2
+    np.testing.assert_array_equal(reached_goal(d), [True, False])
+    np.testing.assert_allclose(grid_coverage(d, env, 2), [2 / 4, 1 / 4])  # (0,0) and (0.1,0.1) share a cell
+    algos = build_algorithms(config("ch3_qdpg", "tiny"), "pointmaze", env)
+    assert set(algos) == {"QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME"}
