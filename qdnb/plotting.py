@@ -93,3 +93,17 @@ def draw_pointmaze(ax: plt.Axes) -> None:
     ax.set_ylim(-1, 1)
     ax.set_aspect("equal")
     ax.grid(False)
+
+
+def draw_capsule_walls(ax: plt.Axes, walls, radius: float = 0.5, color: str = "black") -> None:
+    """Capsule walls given by their axis end points ``((x0, y0), (x1, y1))``, seen
+    from above: a rectangle of width ``2 * radius`` with round ends."""
+    from matplotlib.patches import Circle, Polygon
+
+    for (x0, y0), (x1, y1) in walls:
+        d = np.array([x1 - x0, y1 - y0], float)
+        n = np.array([-d[1], d[0]]) / max(np.linalg.norm(d), 1e-9) * radius
+        a, b = np.array([x0, y0], float), np.array([x1, y1], float)
+        ax.add_patch(Polygon([a + n, b + n, b - n, a - n], closed=True, color=color, zorder=5))
+        for end in (a, b):
+            ax.add_patch(Circle(end, radius, color=color, zorder=5))

@@ -87,6 +87,11 @@ class BraxTask(Env):
         k_q, k_qd = jax.random.split(key)
         q = sys.init_q + self.reset_noise * jnp.asarray(self._noise_mask()) * jax.random.normal(k_q, (sys.q_size(),))
         qd = self.reset_noise * jax.random.normal(k_qd, (sys.qd_size(),))
+        return self.state_at(q, qd)
+
+    def state_at(self, q: jax.Array, qd: jax.Array) -> EnvState:
+        """The state with joint positions ``q`` and velocities ``qd`` (the reset's
+        noisy pose, or a chosen start, e.g. to drive a robot at a wall)."""
         pipeline_state = self.brax_env.pipeline_init(q, qd)
         return EnvState(
             core=pipeline_state,

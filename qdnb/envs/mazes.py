@@ -167,19 +167,6 @@ class _WalledAnt(BraxTask):
         mask[3:7] = 0.0  # free joint quaternion
         return mask
 
-    def state_at(self, q: jax.Array, qd: jax.Array) -> EnvState:
-        """The state with joint positions ``q`` and velocities ``qd`` (a chosen
-        start, e.g. to drive the ant at a wall)."""
-        pipeline_state = self.brax_env.pipeline_init(q, qd)
-        return EnvState(
-            core=pipeline_state,
-            obs=self._obs(pipeline_state),
-            reward=jnp.zeros(()),
-            done=jnp.zeros((), bool),
-            state_descriptor=self._state_descriptor(pipeline_state),
-            steps=jnp.zeros((), jnp.int32),
-        )
-
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         nxt = super().step(state, action)
         z = nxt.core.x.pos[0, 2]
@@ -233,7 +220,3 @@ class AntTrap(_WalledAnt):
         """Torso (x, y) clipped to the descriptor box (Section 3.6.1: the open-ended
         Ant-Trap bounds its state descriptors)."""
         return jnp.clip(pipeline_state.x.pos[0, :2], jnp.asarray(self.descriptor_low), jnp.asarray(self.descriptor_high))
-
-    def _state_descriptor(self, pipeline_state) -> jax.Array:
-        low, high = jnp.asarray(self.descriptor_low), jnp.asarray(self.descriptor_high)
-        return jnp.clip(pipeline_state.x.pos[0, :2], low, high)

@@ -170,14 +170,19 @@ def bayes_opt(
         jnp.zeros((budget,), bool),
     )
     _, (queried, observed) = jax.lax.scan(step, init, jnp.arange(budget))
-    best_so_far = jax.lax.cummax(observed)
+    return _search_result(queried, observed)
+
+
+def _search_result(queried: jax.Array, observed: jax.Array) -> dict[str, jax.Array]:
+    """What a search returns, from the indices it queried (-1: no query) and the
+    scores it observed."""
     best = jnp.argmax(observed)
     return {
         "best_score": observed[best],
         "best_index": queried[best],
         "queried": queried,
         "observed": observed,
-        "best_so_far": best_so_far,
+        "best_so_far": jax.lax.cummax(observed),
         "num_evaluations": jnp.sum(queried >= 0),
     }
 
@@ -195,15 +200,7 @@ def random_search(valid: jax.Array, scores: jax.Array, key: jax.Array, budget: i
     ok = jnp.arange(budget) < jnp.sum(valid)
     queried = jnp.where(ok, order, -1)
     observed = jnp.where(ok, scores[order], -jnp.inf)
-    best = jnp.argmax(observed)
-    return {
-        "best_score": observed[best],
-        "best_index": queried[best],
-        "queried": queried,
-        "observed": observed,
-        "best_so_far": jax.lax.cummax(observed),
-        "num_evaluations": jnp.sum(ok),
-    }
+    return _search_result(queried, observed)
 
 
 def reach_scores(positions: jax.Array, goal: jax.Array) -> jax.Array:
