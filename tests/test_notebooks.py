@@ -31,3 +31,16 @@ def test_notebook_runs_at_tiny_scale(name):
                 assert set(r["reassessed"]) == {"coverage", "max_fitness", "qd_score"}
                 assert r["reassessed"]["coverage"] <= r["coverage"]  # re-insertion can only merge cells
                 assert (out.parent / f"repertoire_{env}_{method}.npz").exists()
+    if name == "ch3_qdpg":
+        results = summary["results"]
+        for env in ("pointmaze", "antmaze", "anttrap"):
+            assert set(results[env]) == {"QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME"}
+            for method, r in results[env].items():
+                if r.get("ran", True):
+                    assert 0.0 < r["coverage"] <= 1.0 and r["env_steps"] > 0
+                    assert isinstance(r["final_performance"], float)
+                    assert (env != "pointmaze") or isinstance(r["reached_goal"], bool)
+        assert all(results["pointmaze"][m].get("ran", True) for m in results["pointmaze"])
+        fast = results["fast_adaptation"]
+        assert fast["env"] == "antmaze" and fast["goals"] > 0 and fast["budget"] > 0
+        assert fast["mean"] <= 0.0 and fast["std"] >= 0.0

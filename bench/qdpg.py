@@ -1,0 +1,117 @@
+"""QD-PG on Point-Maze: wall time and environment steps per second, split into
+evaluation (episodes, insertion, buffer and archive writes), novelty (the fresh
+novelty rewards of every diversity batch) and gradient updates (actor steps and
+critic training).  Writes ``bench/results/qdpg.json``.
+
+    python bench/qdpg.py [--scale small] [--iterations 40]
+
+Each part is one jitted function timed on the same warmed-up state (an archive
+already full), so the parts add up to about one iteration; the whole loop is
+timed as ``run_seeds`` runs it (one seed, jitted chunks, compilation included)
+and, compiled once, as a single ``lax.scan`` (the steady rate), extrapolated to
+the scale's budget.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import jax
+
+from qdnb.qd.algorithms import run_seeds
+from qdnb.rl.qdpg_experiment import build_algorithms
+from qdnb.scale import config
+
+
+def timed(fn, *args, repeats: int = 5) -> float:
+    jax.block_until_ready(fn(*args))
+    start = time.perf_counter()
+    for _ in range(repeats):
+        jax.block_until_ready(fn(*args))
+    return (time.perf_counter() - start) / repeats
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scale", default="small")
+    parser.add_argument("--iterations", type=int, default=40)
+    args = parser.parse_args()
+    cfg = config("ch3_qdpg", args.scale)
+    task = cfg.pointmaze
+    algo = build_algorithms(cfg, "pointmaze")["QD-PG"]
+
+    state, _ = jax.jit(algo.init)(jax.random.PRNGKey(0))
+    step = jax.jit(algo.step)
+    for _ in range(15):  # fill the archive (200 x 4 descriptors per iteration)
+        state, _ = step(state)
+    key = jax.random.PRNGKey(1)
+    parents = jax.tree.map(lambda x: x[: task.num_actors], state.repertoire.genotypes)
+    diversity = jax.numpy.arange(task.num_actors) < task.num_actors // 2
+
+    def evaluation(s, k):
+        rep, ev = algo.evaluate_and_insert(s.repertoire, parents, k)
+        return rep, algo._record(s.buffer, s.archive, ev)
+
+    def novelty(s, k):
+        keys = jax.random.split(k, task.num_critic_steps)
+        batches = jax.vmap(lambda kk: s.buffer.sample(kk, cfg.td3_batch_size))(keys)
+        return jax.lax.map(lambda b: algo.novelty_reward(s.archive, b), batches)
+
+    def updates(s, k):
+        k1, k2 = jax.random.split(k)
+        return algo.mutate(s, parents, diversity, k1), algo.train_critics(s, k2)
+
+    parts = {name: timed(jax.jit(fn), state, key) for name, fn in
+             (("evaluation", evaluation), ("novelty", novelty), ("gradient_updates", updates))}
+    # The critic training computes the novelty rewards: count them once, as novelty.
+    parts["gradient_updates"] = max(parts["gradient_updates"] - parts["novelty"], 0.0)
+    steps_per_iteration = task.num_actors * task.episode_length
+
+    start = time.perf_counter()
+    _, _, history = run_seeds(algo, jax.random.split(key, 1), args.iterations, cfg.chunk_size, progress=False)
+    jax.block_until_ready(history)
+    loop = time.perf_counter() - start
+    env_steps = int(history["env_steps"].sum())
+    # The steady rate: one compiled scan of the same iterations, timed on its second call.
+    scan = jax.jit(lambda s: jax.lax.scan(lambda c, _: algo.step(c), s, None, length=args.iterations))
+    jax.block_until_ready(scan(state))
+    start = time.perf_counter()
+    _, evs = scan(state)
+    jax.block_until_ready(evs)
+    steady = time.perf_counter() - start
+    env_steps = int(evs.length.sum())
+
+    per_iteration = steady / args.iterations
+    result = {
+        "scale": args.scale,
+        "device": jax.devices()[0].device_kind,
+        "machine": platform.processor() or platform.machine(),
+        "num_actors": task.num_actors,
+        "episode_length": task.episode_length,
+        "num_critic_steps": task.num_critic_steps,
+        "num_pg_steps": task.num_pg_steps,
+        "archive_size": cfg.archive_size,
+        "td3_batch_size": cfg.td3_batch_size,
+        "seconds_per_iteration_parts": parts,
+        "fraction_of_parts": {k: v / sum(parts.values()) for k, v in parts.items()},
+        "iterations": args.iterations,
+        "loop_seconds_with_compile": loop,
+        "loop_seconds_steady": steady,
+        "steady_seconds_per_iteration": per_iteration,
+        "env_steps_per_second": env_steps / steady,
+        "scale_budget_steps": task.num_steps,
+        "projected_seconds_for_scale_budget": per_iteration * task.num_iterations,
+        "projected_seconds_for_1e6_steps": per_iteration * 1_000_000 / steps_per_iteration,
+    }
+    out = Path(__file__).parent / "results" / "qdpg.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

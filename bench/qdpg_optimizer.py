@@ -1,0 +1,62 @@
+"""SGD (Table 3.2) against Adam for QD-PG's networks on Point-Maze, at the `small`
+scale's budget and gradient steps.  Writes ``bench/results/qdpg_optimizer.json``.
+
+    python bench/qdpg_optimizer.py [--methods D-PG,QD-PG] [--seed 0]
+
+For each method and optimiser: the final performance, whether an episode ended in
+the exit zone, the first environment step at which one did, and the grid coverage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from qdnb.envs.pointmaze import GOAL, GOAL_HALF_SIDE
+from qdnb.qd.algorithms import run_seeds
+from qdnb.rl.qdpg_experiment import build_algorithms
+from qdnb.scale import POINTMAZE_PAPER, config
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--methods", default="D-PG,QD-PG")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    small = config("ch3_qdpg", "small")
+    settings = {"sgd (Table 3.2)": dict(optimizer="sgd", learning_rate=POINTMAZE_PAPER.learning_rate),
+                "adam (small scale)": dict(optimizer=small.pointmaze.optimizer,
+                                           learning_rate=small.pointmaze.learning_rate)}
+    rows = []
+    for label, change in settings.items():
+        cfg = dataclasses.replace(small, num_seeds=1, pointmaze=dataclasses.replace(small.pointmaze, **change))
+        algorithms = build_algorithms(cfg, "pointmaze")
+        for method in args.methods.split(","):
+            start = time.perf_counter()
+            _, _, h = run_seeds(algorithms[method], jax.random.PRNGKey(args.seed)[None], cfg.pointmaze.num_iterations - 1,
+                                cfg.chunk_size, progress=False)
+            h = jax.device_get(h)
+            d = h["descriptors"][0]
+            steps = np.cumsum(h["env_steps"][0])
+            exit_zone = np.all(np.abs(d - np.asarray(GOAL)) <= GOAL_HALF_SIDE + 1e-6, axis=-1).any(axis=-1)
+            rows.append({"optimizer": label, **change, "method": method,
+                         "final_performance": float(h["max_fitness"][0, -1]),
+                         "coverage": float(h["coverage"][0, -1]),
+                         "reached_exit": bool(exit_zone.any()),
+                         "first_step_in_exit": float(steps[np.argmax(exit_zone)]) if exit_zone.any() else None,
+                         "env_steps": int(steps[-1]), "seconds": round(time.perf_counter() - start, 1)})
+            print(rows[-1], flush=True)
+    out = Path(__file__).parent / "results" / "qdpg_optimizer.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps({"seed": args.seed, "num_critic_steps": small.pointmaze.num_critic_steps,
+                               "num_pg_steps": small.pointmaze.num_pg_steps, "runs": rows}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
