@@ -275,18 +275,12 @@ class PGAMapElites(MapElites):
     def num_pg(self) -> int:
         return int(self.batch_size * self.pg_proportion)
 
-    def _store(self, buffer: ReplayBuffer, ev: Evaluation) -> ReplayBuffer:
-        t = ev.trajectory
-        flat = lambda x: x.reshape((-1,) + x.shape[len(ev.fitness.shape) + 1:])
-        transitions = {k: flat(t[k]).astype(jnp.float32) for k in ("obs", "action", "reward", "next_obs", "terminal")}
-        return buffer.add(transitions, flat(t["valid"]))
-
     def init(self, key: jax.Array) -> tuple[PGAState, Evaluation]:
         k_init, k_eval, k_td3, key = jax.random.split(key, 4)
         params = self.random_policies(k_init)
         archive, ev = self.evaluate_and_insert(self.empty_archive(params), params, k_eval)
         buffer = ReplayBuffer.create(self.buffer_size, self.env.observation_size, self.env.action_size)
-        return PGAState(archive, self.td3.init(k_td3), self._store(buffer, ev), key), ev
+        return PGAState(archive, self.td3.init(k_td3), buffer.add_episodes(ev.trajectory, ev.fitness.ndim), key), ev
 
     def step(self, state: PGAState) -> tuple[PGAState, Evaluation]:
         key, k_sel, k_pg, k_vary, k_critic, k_eval = jax.random.split(state.key, 6)
@@ -301,7 +295,7 @@ class PGAMapElites(MapElites):
         offspring = concat(concat(pg_offspring, ga_offspring), greedy)
         td3_state, _ = td3.train_critic(state.td3, state.buffer, k_critic, self.num_critic_steps)
         archive, ev = self.evaluate_and_insert(state.repertoire, offspring, k_eval)
-        return PGAState(archive, td3_state, self._store(state.buffer, ev), key), ev
+        return PGAState(archive, td3_state, state.buffer.add_episodes(ev.trajectory, ev.fitness.ndim), key), ev
 
 
 @dataclass(frozen=True, eq=False)

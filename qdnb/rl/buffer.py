@@ -54,6 +54,13 @@ class ReplayBuffer:
         count = jnp.sum(valid).astype(jnp.int32)
         return ReplayBuffer(data, (self.position + count) % self.capacity, jnp.minimum(self.size + count, self.capacity))
 
+    def add_episodes(self, trajectory: dict, batch_ndim: int) -> "ReplayBuffer":
+        """Every valid step of a batch of episodes (``trajectory`` as returned by
+        the rollouts: ``batch_ndim`` leading batch axes, then time), with the
+        keys this buffer holds."""
+        flat = lambda x: x.reshape((-1,) + x.shape[batch_ndim + 1:]).astype(jnp.float32)
+        return self.add({k: flat(trajectory[k]) for k in self.data}, trajectory["valid"].reshape(-1))
+
     def sample(self, key: jax.Array, batch_size: int) -> dict:
         """``batch_size`` transitions drawn uniformly, with replacement, among the stored ones."""
         idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(self.size, 1))

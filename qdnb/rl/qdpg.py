@@ -48,19 +48,6 @@ from qdnb.rl.td3 import TD3, TD3Config, TD3State
 
 UPDATES = ("alternate", "sum", "diversity", "quality")
 
-TRANSITION_KEYS = ("obs", "action", "reward", "next_obs", "terminal", "state_descriptor")
-
-
-def store_transitions(buffer: ReplayBuffer, ev: Evaluation) -> ReplayBuffer:
-    """Every valid step of every episode of ``ev`` (leading axes: policies, time)
-    into the buffer, with the keys the buffer holds."""
-    t = ev.trajectory
-    lead = ev.fitness.ndim + 1
-    flat = lambda x: x.reshape((-1,) + x.shape[lead:]).astype(jnp.float32)
-    return buffer.add({k: flat(t[k]) for k in TRANSITION_KEYS if k in buffer.data},
-                      t["valid"].reshape(-1))
-
-
 def update_kinds(key: jax.Array, num_actors: int, update: str) -> jax.Array:
     """Per actor, True for a diversity update and False for a quality one.
 
@@ -123,7 +110,7 @@ class QDPG(MapElites):
         t = ev.trajectory
         sd = t["state_descriptor"].reshape(-1, t["state_descriptor"].shape[-1])
         archive = archive.add(sd, self.archive_threshold, self.archive_k, t["valid"].reshape(-1))
-        return store_transitions(buffer, ev), archive
+        return buffer.add_episodes(ev.trajectory, ev.fitness.ndim), archive
 
     def init(self, key: jax.Array) -> tuple[QDPGState, Evaluation]:
         k_init, k_eval, k_q, k_d, key = jax.random.split(key, 5)
@@ -207,7 +194,7 @@ class TD3Agent:
         actors = jax.tree.map(lambda x: jnp.repeat(x[None], self.num_episodes, axis=0), td3_state.actor)
         noise = jnp.full((self.num_episodes,), self.exploration_noise).at[0].set(0.0)
         ev = evaluate_policies(self.env, self.network.apply, actors, key, True, noise)
-        return store_transitions(buffer, ev), ev
+        return buffer.add_episodes(ev.trajectory, ev.fitness.ndim), ev
 
     def init(self, key: jax.Array) -> tuple[TD3AgentState, Evaluation]:
         k_init, k_eval, key = jax.random.split(key, 3)
