@@ -117,5 +117,5 @@ def test_batched_evaluation_shapes_and_determinism():
 
 
 def test_unknown_environment_is_a_clear_error():
-    with pytest.raises(ValueError, match="valid names: ant_omni, halfcheetah_uni, pointmaze"):
+    with pytest.raises(ValueError, match="valid names: ant_omni, antmaze, anttrap, halfcheetah_uni, pointmaze"):
         make_env("pointmaz")
