@@ -18,9 +18,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.envs.pointmaze import GOAL, GOAL_HALF_SIDE
 from qdnb.qd.algorithms import run_seeds
-from qdnb.rl.qdpg_experiment import build_algorithms
+from qdnb.rl.qdpg_experiment import build_algorithms, in_exit_zone
 from qdnb.scale import POINTMAZE_PAPER, config
 
 
@@ -44,7 +43,7 @@ def main() -> None:
             h = jax.device_get(h)
             d = h["descriptors"][0]
             steps = np.cumsum(h["env_steps"][0])
-            exit_zone = np.all(np.abs(d - np.asarray(GOAL)) <= GOAL_HALF_SIDE + 1e-6, axis=-1).any(axis=-1)
+            exit_zone = in_exit_zone(d).any(axis=-1)
             rows.append({"optimizer": label, **change, "method": method,
                          "final_performance": float(h["max_fitness"][0, -1]),
                          "coverage": float(h["coverage"][0, -1]),

@@ -23,8 +23,10 @@ import numpy as np
 
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
+from qdnb.envs.pointmaze import in_goal
 from qdnb.qd.algorithms import PGAMapElites, run_seeds
 from qdnb.qd.cvt import grid_centroids
+from qdnb.qd.metrics import grid_cell
 from qdnb.rl.networks import MLP
 from qdnb.rl.qdpg import QDPG, TD3Agent
 from qdnb.rl.td3 import TD3Config
@@ -127,18 +129,20 @@ def grid_coverage(descriptors: np.ndarray, env: Env, bins: int) -> np.ndarray:
     """Fraction of the ``bins x bins`` grid cells reached by any evaluated
     episode, per seed (``descriptors``: seeds x iterations x episodes x 2).  For
     TD3, which keeps no grid, this is the grid it would have filled."""
-    low, high = np.asarray(env.descriptor_low), np.asarray(env.descriptor_high)
     d = descriptors.reshape(descriptors.shape[0], -1, descriptors.shape[-1])
-    cells = np.clip(((d - low) / (high - low) * bins).astype(int), 0, bins - 1)
-    flat = cells[..., 0] * bins + cells[..., 1]
-    return np.array([len(np.unique(f)) / bins**2 for f in flat])
+    cells = np.asarray(grid_cell(d, (bins, bins), env.descriptor_low, env.descriptor_high))
+    return np.array([len(np.unique(c)) / bins**2 for c in cells])
+
+
+def in_exit_zone(descriptors: np.ndarray) -> np.ndarray:
+    """Whether each Point-Maze final position lies in the exit zone (an episode
+    stops there, so an episode that entered the zone ends in it); the shape of
+    ``descriptors`` without its last axis."""
+    flat = np.asarray(descriptors).reshape(-1, 2)
+    return np.asarray(jax.vmap(in_goal)(flat)).reshape(np.shape(descriptors)[:-1])
 
 
 def reached_goal(descriptors: np.ndarray) -> np.ndarray:
-    """Per seed, whether any evaluated Point-Maze episode ended in the goal zone
-    (an episode stops there, so its final position is in the zone)."""
-    from qdnb.envs.pointmaze import GOAL, GOAL_HALF_SIDE
-
-    d = descriptors.reshape(descriptors.shape[0], -1, 2)
-    inside = np.all(np.abs(d - np.asarray(GOAL)) <= GOAL_HALF_SIDE + 1e-6, axis=-1)
-    return inside.any(axis=1)
+    """Per seed (leading axis), whether any evaluated Point-Maze episode ended in
+    the exit zone."""
+    return in_exit_zone(descriptors).reshape(np.shape(descriptors)[0], -1).any(axis=1)
