@@ -186,6 +186,64 @@ class QDPGConfig:
 QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
 
 
+@dataclass(frozen=True)
+class QDTTask:
+    """Per-environment settings of the QDT chapter (Sections 4.4.4 and 4.5.1).
+
+    The descriptor space is split into ``zones`` CVT zones; every stored policy
+    plays ``selection_episodes`` episodes and the most consistent policy of each
+    zone is kept; each kept policy then plays ``episodes_per_policy`` episodes
+    into the dataset.  The QDT is evaluated on ``goals`` CVT goals (their own
+    tessellation), ``eval_episodes`` episodes each (N = 10 in the thesis).
+    """
+
+    zones: int
+    goals: int
+    selection_episodes: int
+    episodes_per_policy: int
+
+
+@dataclass(frozen=True)
+class QDTConfig:
+    """Chapter 4's Quality-Diversity Transformer (Table 4.3 at ``paper`` scale).
+
+    The datasets come from the repertoires of the Chapter 4 run at the same
+    scale; QDT seed ``i`` uses that run's seed-``i`` repertoires.  ``prune_*``
+    define the generalisation datasets of Figures 4.10 and 4.11."""
+
+    num_seeds: int
+    ant_omni: QDTTask
+    halfcheetah_uni: QDTTask
+    epochs: int
+    eval_every: int
+    embed_dim: int = 256
+    num_layers: int = 4
+    num_heads: int = 8
+    dropout: float = 0.1
+    batch_size: int = 256
+    learning_rate: float = 7e-4
+    eval_episodes: int = 10
+    tiles: int = 4  # the "Tiles" dataset: a tiles x tiles checkerboard, half of it removed
+    density_bins: int = 30
+    cvt_samples: int = 50_000
+    cvt_iterations: int = 30
+    environments: tuple[str, ...] = ("ant_omni", "halfcheetah_uni")
+
+    def __post_init__(self):
+        if self.epochs < 1 or self.eval_every < 1 or self.epochs % self.eval_every:
+            raise ValueError(f"epochs ({self.epochs}) must be a positive multiple of eval_every ({self.eval_every})")
+        if self.embed_dim % self.num_heads:
+            raise ValueError(f"embed_dim ({self.embed_dim}) must be a multiple of num_heads ({self.num_heads})")
+        unknown = set(self.environments) - {"ant_omni", "halfcheetah_uni"}
+        if unknown:
+            raise ValueError(f"unknown environments {sorted(unknown)}; valid: ant_omni, halfcheetah_uni")
+
+    def task(self, env_name: str) -> QDTTask:
+        if env_name not in ("ant_omni", "halfcheetah_uni"):
+            raise ValueError(f"unknown environment {env_name!r}; valid: ant_omni, halfcheetah_uni")
+        return getattr(self, env_name)
+
+
 _CONFIGS: dict[str, dict[str, object]] = {
     "ch2_primer": {
         "tiny": PrimerConfig(num_seeds=2, num_iterations=40, batch_size=64, chunk_size=20, ns_population=64),
@@ -207,6 +265,22 @@ _CONFIGS: dict[str, dict[str, object]] = {
             reassess_episodes=3),
         "paper": ReproducibilityConfig(
             num_seeds=5, num_iterations=1000, env_batch=1000, num_episodes=10, num_cells=1024, chunk_size=20),
+    },
+    "ch4_qdt": {
+        "tiny": QDTConfig(
+            num_seeds=1, epochs=2, eval_every=1, embed_dim=16, num_layers=1, num_heads=2, batch_size=8,
+            learning_rate=1e-3, eval_episodes=2, cvt_samples=2_000, cvt_iterations=10, density_bins=10,
+            ant_omni=QDTTask(zones=8, goals=8, selection_episodes=2, episodes_per_policy=3),
+            halfcheetah_uni=QDTTask(zones=6, goals=6, selection_episodes=2, episodes_per_policy=3)),
+        "small": QDTConfig(
+            num_seeds=1, epochs=10, eval_every=5, embed_dim=64, num_layers=1, num_heads=2, batch_size=8,
+            learning_rate=1e-3, eval_episodes=5, cvt_samples=20_000,
+            ant_omni=QDTTask(zones=25, goals=25, selection_episodes=4, episodes_per_policy=16),
+            halfcheetah_uni=QDTTask(zones=16, goals=16, selection_episodes=4, episodes_per_policy=16)),
+        "paper": QDTConfig(
+            num_seeds=3, epochs=100, eval_every=5,
+            ant_omni=QDTTask(zones=100, goals=100, selection_episodes=10, episodes_per_policy=3000),
+            halfcheetah_uni=QDTTask(zones=50, goals=50, selection_episodes=10, episodes_per_policy=6000)),
     },
     "ch3_qdpg": {
         "tiny": QDPGConfig(

@@ -104,15 +104,19 @@ class Player:
     """Plays (policy, initial-state key) pairs in fixed-size chunks through one
     compiled simulation, whatever the number of episodes asked for: the tests of
     every repertoire then cost one compilation per environment.  Each episode's
-    state-descriptor path comes back as its ``trajectory``."""
+    state-descriptor path comes back as its ``trajectory``; with ``record``, its
+    ``obs``, ``action`` and ``valid`` steps instead (the QDT's datasets)."""
 
-    def __init__(self, env: Env, network: MLP, chunk: int):
+    def __init__(self, env: Env, network: MLP, chunk: int, record: bool = False):
         self.chunk = chunk
+        kept = ("obs", "action", "valid") if record else "state_descriptor"
 
         def play(genotypes, keys):
             def one(g, k):
                 ev = evaluate_policies(env, network.apply, jax.tree.map(lambda x: x[None], g), k, True)
-                return ev.fitness[0], ev.descriptor[0], ev.trajectory["state_descriptor"][0]
+                path = jax.tree.map(lambda x: x[0], {n: ev.trajectory[n] for n in kept} if record
+                                    else ev.trajectory[kept])
+                return ev.fitness[0], ev.descriptor[0], path
             return jax.vmap(one)(genotypes, keys)
 
         self._play = jax.jit(play)
@@ -122,9 +126,10 @@ class Player:
         pad = (-n) % self.chunk
         padded = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), (genotypes, keys))
         outs = [self._play(*jax.tree.map(lambda x: x[i:i + self.chunk], padded)) for i in range(0, n + pad, self.chunk)]
-        fitness, descriptor, path = (jnp.concatenate(parts)[:n] for parts in zip(*outs))
-        return Evaluation(fitness=fitness, descriptor=descriptor, length=jnp.full((n,), path.shape[1]),
-                          trajectory=path)
+        fitness, descriptor, path = (jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts)
+                                     for parts in zip(*outs))
+        length = jnp.sum(path["valid"], axis=1) if isinstance(path, dict) else jnp.full((n,), path.shape[1])
+        return Evaluation(fitness=fitness, descriptor=descriptor, length=length, trajectory=path)
 
     def episodes(self, num_episodes: int, only: jax.Array | None = None):
         """``evaluate_fn(genotypes, key)``: each of the ``G`` policies over
