@@ -1,0 +1,94 @@
+"""Playing the QDT in the environment (Algorithm 8's evaluation loop, Figure 4.6).
+
+The QDT is conditioned on a goal descriptor and fed the first observation; the
+action it predicts at the ``O_t`` token is played, and the trajectory grows
+one timestep at a time.  ``play`` unrolls every (goal, episode) pair of a batch
+at once in one ``lax.scan`` over time; with ``cached=True`` (the default) each
+step feeds only the new tokens through the transformer, reusing the keys and
+values of the earlier ones; with ``cached=False`` it recomputes the whole
+prefix every step (the reference the cache is tested and timed against).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from qdnb.envs.base import Env
+from qdnb.envs.rollout import Evaluation
+from qdnb.qd.low_spread import spread
+from qdnb.qdt.model import QDT
+
+
+def play(env: Env, model: QDT, params: Any, goals: jax.Array, key: jax.Array, num_episodes: int,
+         cached: bool = True) -> Evaluation:
+    """Condition the QDT on each goal ``(G, d)`` for ``num_episodes`` episodes from
+    different initial states; leaves of the result have shape ``(G, E, ...)``
+    (``trajectory`` holds the actions played, ``(G, E, T, A)``).  The fitness is
+    read as ``evaluate_policies`` reads it (``env.fitness_mode``)."""
+    if model.max_steps < env.episode_length:
+        raise ValueError(f"the QDT knows {model.max_steps} timesteps, the episodes last {env.episode_length}")
+    g = goals.shape[0]
+    n = g * num_episodes
+    bd = jnp.repeat(goals, num_episodes, axis=0)
+    states = jax.vmap(env.reset)(jax.random.split(key, n))
+    step_env = jax.vmap(env.step)
+    horizon = env.episode_length
+
+    if cached:
+        memory = model.apply(params, n, method=QDT.init_cache)
+
+        def first(obs, memory):
+            return model.apply(params, bd, obs, memory, method=QDT.prefill)
+
+        def next_action(t, prev_action, obs, memory):
+            return model.apply(params, bd, prev_action, obs, t, memory, method=QDT.decode_step)
+    else:  # the whole trajectory so far, padded to full length (causality hides the padding)
+        memory = (jnp.zeros((n, horizon, env.observation_size)), jnp.zeros((n, horizon, env.action_size)))
+
+        def full(t, obs, memory):
+            obs_buf, act_buf = memory
+            obs_buf = obs_buf.at[:, t].set(obs)
+            action = model.apply(params, bd, obs_buf, act_buf)[:, t]
+            return action, (obs_buf, act_buf.at[:, t].set(action))
+
+        first = lambda obs, memory: full(0, obs, memory)
+        next_action = lambda t, prev_action, obs, memory: full(t, obs, memory)
+
+    use_max = env.fitness_mode == "max_reward"
+
+    def advance(carry, action, memory):
+        state, alive, ret, length, sd_sum, last_sd = carry
+        nxt = step_env(state, action)
+        fit = jnp.where(alive, jnp.maximum(ret, nxt.reward), ret) if use_max else ret + jnp.where(alive, nxt.reward, 0.0)
+        carry = (nxt, alive & ~nxt.done, fit, length + alive,
+                 sd_sum + jnp.where(alive[:, None], nxt.state_descriptor, 0.0),
+                 jnp.where(alive[:, None], nxt.state_descriptor, last_sd))
+        return carry
+
+    action0, memory = first(states.obs, memory)
+    carry = advance((states, ~states.done, jnp.full(n, -jnp.inf if use_max else 0.0), jnp.zeros(n, jnp.int32),
+                     jnp.zeros_like(states.state_descriptor), states.state_descriptor), action0, memory)
+
+    def body(c, t):
+        carry, prev_action, memory = c
+        action, memory = next_action(t, prev_action, carry[0].obs, memory)
+        return (advance(carry, action, memory), action, memory), action
+
+    (carry, _, _), actions = jax.lax.scan(body, (carry, action0, memory), jnp.arange(1, horizon))
+    _, _, ret, length, sd_sum, last_sd = carry
+    actions = jnp.concatenate([action0[None], actions]).swapaxes(0, 1)
+    reshape = lambda x: x.reshape((g, num_episodes) + x.shape[1:])
+    return Evaluation(fitness=reshape(ret), descriptor=reshape(jax.vmap(env.behaviour_descriptor)(last_sd, sd_sum, length)),
+                      length=reshape(length), trajectory=reshape(actions))
+
+
+def goal_scores(goals: jax.Array, ev: Evaluation) -> dict[str, np.ndarray]:
+    """Per goal: mean distance between the goal and the achieved descriptors
+    (Section 4.5.2), spread of the achieved descriptors (Eq. 4.1) and mean fitness."""
+    distance = jnp.mean(jnp.linalg.norm(ev.descriptor - goals[:, None, :], axis=-1), axis=1)
+    return {"distance": np.asarray(distance), "spread": np.asarray(jax.vmap(spread)(ev.descriptor)),
+            "fitness": np.asarray(jnp.mean(ev.fitness, axis=1))}

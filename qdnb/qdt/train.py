@@ -1,0 +1,104 @@
+"""Supervised training of the QDT (Algorithm 8's training loop, Section 4.5.1).
+
+Minibatches of whole trajectories, one causal forward pass each, mean-squared
+error between the predicted and the dataset's actions over every valid step of
+every trajectory.  Every ``eval_every`` epochs the QDT is played on the
+evaluation goals; the parameters of the best evaluation are kept (the thesis
+selects each QDT "according to its best training epoch").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from qdnb.qdt.data import Trajectories
+from qdnb.qdt.model import QDT, init_params
+
+
+def loss_fn(model: QDT, params: Any, batch: Trajectories, key: jax.Array | None = None) -> jax.Array:
+    """Mean over valid steps of the squared error of the predicted actions
+    (averaged over action dimensions); dropout is on when a ``key`` is given."""
+    rngs = None if key is None else {"dropout": key}
+    pred = model.apply(params, batch.bd, batch.obs, batch.actions, deterministic=key is None, rngs=rngs)
+    err = jnp.mean((pred - batch.actions) ** 2, axis=-1)
+    valid = batch.valid.astype(err.dtype)
+    return jnp.sum(err * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+
+
+def make_optimizer(learning_rate: float) -> optax.GradientTransformation:
+    """Adam with gradient clipping (global norm 1), as Decision-Transformer-style
+    training does; the learning rate is Table 4.3's."""
+    return optax.chain(optax.clip_by_global_norm(1.0), optax.adam(learning_rate))
+
+
+def make_train_step(model: QDT, optimizer: optax.GradientTransformation):
+    """One jitted gradient step on a minibatch: ``(params, opt_state, batch, key)
+    -> (params, opt_state, loss)``."""
+
+    @jax.jit
+    def step(params, opt_state, batch, key):
+        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, batch, key))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    return step
+
+
+@dataclass
+class TrainResult:
+    params: Any  # the parameters of the best evaluation
+    best_epoch: int
+    losses: list[float]  # mean training loss of every epoch
+    evaluations: list[dict[str, Any]] = field(default_factory=list)  # {"epoch", **scores}
+
+
+def fit(model: QDT, data: Trajectories, key: jax.Array, epochs: int, batch_size: int, learning_rate: float,
+        eval_every: int, evaluate: Callable[[Any, int], dict[str, Any]], step=None, progress: bool = True,
+        desc: str = "QDT") -> TrainResult:
+    """Train on ``data`` for ``epochs`` epochs and call ``evaluate(params, epoch)``
+    after every ``eval_every`` epochs; ``evaluate`` returns scores with an
+    ``avg_distance`` (lower is better).
+
+    An epoch is a pass over a fresh permutation in minibatches of ``batch_size``
+    trajectories, the last partial one dropped; a dataset smaller than a batch
+    fills one batch by repeating its permutation.  Every batch thus has one
+    shape, and ``step`` (from ``make_train_step``) compiles once for all the
+    datasets of an environment when it is shared."""
+    if epochs < 1 or eval_every < 1 or epochs % eval_every:
+        raise ValueError(f"epochs ({epochs}) must be a positive multiple of eval_every ({eval_every})")
+    if data.size == 0:
+        raise ValueError("the dataset is empty")
+    k_init, k_train = jax.random.split(key)
+    params = init_params(model, k_init, data.bd.shape[-1], data.obs.shape[-1])
+    optimizer = make_optimizer(learning_rate)
+    step = step or make_train_step(model, optimizer)
+    opt_state = optimizer.init(params)
+    result = TrainResult(params=params, best_epoch=0, losses=[])
+    best = np.inf
+    bar = tqdm(range(1, epochs + 1), desc=desc, disable=not progress, leave=True)
+    for epoch in bar:
+        k_perm, k_drop, k_train = jax.random.split(k_train, 3)
+        order = np.asarray(jax.random.permutation(k_perm, data.size))
+        if data.size < batch_size:  # one batch, the permutation repeated: every batch has one shape
+            order = np.resize(order, batch_size)
+        batches = order[: order.size // batch_size * batch_size].reshape(-1, batch_size)
+        losses = []
+        for i, index in enumerate(batches):
+            batch = jax.tree.map(lambda x: x[index], data)
+            params, opt_state, loss = step(params, opt_state, batch, jax.random.fold_in(k_drop, i))
+            losses.append(loss)
+        result.losses.append(float(jnp.mean(jnp.stack(losses))))
+        if epoch % eval_every == 0:
+            scores = evaluate(params, epoch)
+            result.evaluations.append({"epoch": epoch, **scores})
+            if scores["avg_distance"] < best:
+                best, result.best_epoch, result.params = scores["avg_distance"], epoch, params
+            bar.set_postfix(loss=f"{result.losses[-1]:.4f}", dist=f"{scores['avg_distance']:.3g}")
+    return result
