@@ -44,3 +44,16 @@ def test_notebook_runs_at_tiny_scale(name):
         fast = results["fast_adaptation"]
         assert fast["env"] == "antmaze" and fast["goals"] > 0 and fast["budget"] > 0
         assert fast["mean"] <= 0.0 and fast["std"] >= 0.0
+    if name == "ch4_qdt":
+        results = summary["results"]
+        for env in ("ant_omni", "halfcheetah_uni"):
+            for source in ("ME", "ME-LS", "PGA-ME", "PGA-ME-LS", "Naive"):
+                r = results[env][source]
+                assert r["avg_distance"] >= 0.0 and r["avg_spread"] >= 0.0
+                assert 1 <= r["best_epoch"] <= summary["config"]["epochs"]
+            assert set(results["repertoires"][env]) == {"ME", "ME-LS", "PGA-ME", "PGA-ME-LS"}
+            gen = results["generalization"][env]
+            assert set(gen) == {"50%", "30%", "10%", "tiles", "upper"}
+            for pruning in ("tiles", "upper"):
+                assert {"avg_distance", "avg_distance_removed", "avg_distance_kept"} <= set(gen[pruning])
+        assert 0 <= results["claims_held"] <= results["claims_total"] == 2
