@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from qdnb.envs.base import Env
+from qdnb.envs.base import Env, EnvState
 
 PolicyApply = Callable[[Any, jax.Array], jax.Array]
 
@@ -46,7 +46,7 @@ def evaluate_policies(
     ``env.episode_length``: once an episode is ``done`` the environment keeps
     stepping but nothing it does counts (an ``alive`` flag masks rewards and
     descriptors), which costs less than freezing the state.  Return, length, the
-    sum and the last of the state descriptors are accumulated in the carry;
+    sum and the last of the state descriptors are accumulated in a ``Tally``;
     per-step arrays, with shape ``(batch, time, ...)``, are only stacked when
     ``return_trajectory`` asks (``valid`` marks the steps taken while alive,
     ``terminal`` the ends that are not the time limit, for bootstrapping).
@@ -60,41 +60,68 @@ def evaluate_policies(
     states = jax.vmap(env.reset)(jax.random.split(k_reset if _noisy(exploration_noise) else key, batch))
     sigma = jnp.broadcast_to(jnp.asarray(exploration_noise, jnp.float32), (batch,))
     noise_keys = jax.random.split(k_noise, batch)
-    use_max = env.fitness_mode == "max_reward"
 
     def one_env(params, sigma, noise_key, carry):
-        state, alive, ret, length, sd_sum, last_sd = carry
+        state, tally = carry
         action = policy_apply(params, state.obs)
         if _noisy(exploration_noise):
             noise = jax.random.normal(jax.random.fold_in(noise_key, state.steps), action.shape)
             action = jnp.clip(action + sigma * noise, -1.0, 1.0)
         nxt = env.step(state, action)
-        reward = jnp.where(alive, nxt.reward, 0.0)
-        fit = jnp.where(alive, jnp.maximum(ret, nxt.reward), ret) if use_max else ret + reward
-        carry = (nxt, alive & ~nxt.done, fit, length + alive,
-                 sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
-                 jnp.where(alive, nxt.state_descriptor, last_sd))
+        new_tally, reward = tally_step(env, tally, nxt)
         out = None
         if return_trajectory:
             out = {"obs": state.obs, "action": action, "reward": reward, "next_obs": nxt.obs,
                    "done": nxt.done, "terminal": nxt.done & (nxt.steps < env.episode_length),
-                   "state_descriptor": nxt.state_descriptor, "valid": alive}
-        return carry, out
+                   "state_descriptor": nxt.state_descriptor, "valid": tally.alive}
+        return (nxt, new_tally), out
 
     step = jax.vmap(one_env)
-    ret0 = jnp.full((batch,), -jnp.inf) if use_max else jnp.zeros((batch,))
-    init = (states, ~states.done, ret0, jnp.zeros((batch,), jnp.int32),
-            jnp.zeros_like(states.state_descriptor), states.state_descriptor)
-    (_, _, ret, length, sd_sum, last_sd), traj = jax.lax.scan(lambda c, _: step(params, sigma, noise_keys, c), init, None,
-                                                                  length=env.episode_length)
+    init = (states, jax.vmap(lambda s: tally_start(env, s))(states))
+    (_, tally), traj = jax.lax.scan(lambda c, _: step(params, sigma, noise_keys, c), init, None,
+                                    length=env.episode_length)
     if return_trajectory:
         traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)
-    return Evaluation(
-        fitness=ret,
-        descriptor=jax.vmap(env.behaviour_descriptor)(last_sd, sd_sum, length),
-        length=length,
-        trajectory=traj,
-    )
+    return tally_evaluation(env, tally, traj)
+
+
+@struct.dataclass
+class Tally:
+    """What one episode accumulates while it plays: whether it is still
+    ``alive`` (not yet done), its fitness so far, its length, and the sum and
+    the last of its state descriptors (for ``env.behaviour_descriptor``)."""
+
+    alive: jax.Array
+    fitness: jax.Array
+    length: jax.Array
+    sd_sum: jax.Array
+    last_sd: jax.Array
+
+
+def tally_start(env: Env, state: EnvState) -> Tally:
+    """The tally of one episode before its first step."""
+    fitness = -jnp.inf if env.fitness_mode == "max_reward" else 0.0
+    return Tally(alive=~state.done, fitness=jnp.asarray(fitness, jnp.float32), length=jnp.zeros((), jnp.int32),
+                 sd_sum=jnp.zeros_like(state.state_descriptor), last_sd=state.state_descriptor)
+
+
+def tally_step(env: Env, tally: Tally, nxt: EnvState) -> tuple[Tally, jax.Array]:
+    """Count one step of one episode that led to ``nxt``; steps after the episode
+    ended count for nothing.  Returns the tally and the (masked) reward."""
+    alive = tally.alive
+    reward = jnp.where(alive, nxt.reward, 0.0)
+    fitness = (jnp.where(alive, jnp.maximum(tally.fitness, nxt.reward), tally.fitness)
+               if env.fitness_mode == "max_reward" else tally.fitness + reward)
+    return Tally(alive=alive & ~nxt.done, fitness=fitness, length=tally.length + alive,
+                 sd_sum=tally.sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
+                 last_sd=jnp.where(alive, nxt.state_descriptor, tally.last_sd)), reward
+
+
+def tally_evaluation(env: Env, tally: Tally, trajectory: Any = None) -> Evaluation:
+    """The ``Evaluation`` of a batch of finished tallies."""
+    return Evaluation(fitness=tally.fitness,
+                      descriptor=jax.vmap(env.behaviour_descriptor)(tally.last_sd, tally.sd_sum, tally.length),
+                      length=tally.length, trajectory=trajectory)
 
 
 def _noisy(exploration_noise) -> bool:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.envs.base import Env
-from qdnb.envs.rollout import Evaluation
+from qdnb.envs.rollout import Evaluation, tally_evaluation, tally_start, tally_step
 from qdnb.qd.low_spread import spread
 from qdnb.qdt.model import QDT
 
@@ -58,32 +58,24 @@ def play(env: Env, model: QDT, params: Any, goals: jax.Array, key: jax.Array, nu
         first = lambda obs, memory: full(0, obs, memory)
         next_action = lambda t, prev_action, obs, memory: full(t, obs, memory)
 
-    use_max = env.fitness_mode == "max_reward"
+    tally_steps = jax.vmap(lambda tally, nxt: tally_step(env, tally, nxt)[0])
 
-    def advance(carry, action, memory):
-        state, alive, ret, length, sd_sum, last_sd = carry
-        nxt = step_env(state, action)
-        fit = jnp.where(alive, jnp.maximum(ret, nxt.reward), ret) if use_max else ret + jnp.where(alive, nxt.reward, 0.0)
-        carry = (nxt, alive & ~nxt.done, fit, length + alive,
-                 sd_sum + jnp.where(alive[:, None], nxt.state_descriptor, 0.0),
-                 jnp.where(alive[:, None], nxt.state_descriptor, last_sd))
-        return carry
+    def advance(states, tallies, action):
+        nxt = step_env(states, action)
+        return nxt, tally_steps(tallies, nxt)
 
     action0, memory = first(states.obs, memory)
-    carry = advance((states, ~states.done, jnp.full(n, -jnp.inf if use_max else 0.0), jnp.zeros(n, jnp.int32),
-                     jnp.zeros_like(states.state_descriptor), states.state_descriptor), action0, memory)
+    states, tallies = advance(states, jax.vmap(lambda s: tally_start(env, s))(states), action0)
 
-    def body(c, t):
-        carry, prev_action, memory = c
-        action, memory = next_action(t, prev_action, carry[0].obs, memory)
-        return (advance(carry, action, memory), action, memory), action
+    def body(carry, t):
+        states, tallies, prev_action, memory = carry
+        action, memory = next_action(t, prev_action, states.obs, memory)
+        return (*advance(states, tallies, action), action, memory), action
 
-    (carry, _, _), actions = jax.lax.scan(body, (carry, action0, memory), jnp.arange(1, horizon))
-    _, _, ret, length, sd_sum, last_sd = carry
+    (_, tallies, _, _), actions = jax.lax.scan(body, (states, tallies, action0, memory), jnp.arange(1, horizon))
     actions = jnp.concatenate([action0[None], actions]).swapaxes(0, 1)
-    reshape = lambda x: x.reshape((g, num_episodes) + x.shape[1:])
-    return Evaluation(fitness=reshape(ret), descriptor=reshape(jax.vmap(env.behaviour_descriptor)(last_sd, sd_sum, length)),
-                      length=reshape(length), trajectory=reshape(actions))
+    return jax.tree.map(lambda x: x.reshape((g, num_episodes) + x.shape[1:]),
+                        tally_evaluation(env, tallies, actions))
 
 
 def goal_scores(goals: jax.Array, ev: Evaluation) -> dict[str, np.ndarray]:
