@@ -1,0 +1,438 @@
+"""Flow Lenia with parameters embedded in the grid (Sections 5.2 and 5.3), in pure JAX.
+
+One step from activations ``A`` (``(H, W, C)``, ``C = 1``) and the parameter map
+``P`` (``(H, W, |K|)``, the kernel weights ``h`` of every cell):
+
+1. Lenia's potentials ``K_k * A`` by FFT on the torus, with kernels of concentric
+   Gaussian rings (``kernel_fields``) normalised to sum to one on the grid.
+2. The affinity of Section 5.3, ``U(p) = sum_k P_k(p) G_k(K_k * A)(p)``, with the
+   growth functions of Eq. 5.1 (``growth``).
+3. The flow ``F = (1 - alpha) grad U - alpha grad A_Sigma``,
+   ``alpha = clip((A_Sigma / theta_A)^n, 0, 1)``, ``n = 2``, ``theta_A = 1``;
+   gradients by periodic, unnormalised Sobel filters (``flow``).
+4. Reintegration tracking (Moroz 2020; Plantec et al. 2023): the matter of every
+   cell ``q`` moves to a uniform square of half-side ``s`` centred on
+   ``q' = q + clip(dt F(q))`` and each cell receives the part of the square that
+   covers it (``reintegrate``).  Mass is conserved exactly, up to float rounding
+   (a relative drift of about 1e-8 per step in float32).
+5. ``P`` moves with matter: each cell takes the parameter vector of one of the
+   cells that send it matter, drawn with probability proportional to
+   ``exp(matter received from it)`` (softmax sampling), and ``P = 0`` where no
+   matter (less than ``mass_epsilon``) arrives.
+
+Displacement bound.  ``dt F`` is clipped per axis to ``[-D, D]`` with
+``D = reach - s`` (``reach = 5``, ``s = 0.65``: ``D = 4.35``, as in Plantec et al.'s
+code).  The matter of ``q`` covers ``[q' - s, q' + s]`` per axis, and the unit cell
+of ``p`` is ``[p - 1/2, p + 1/2]``: they overlap only when ``|p - q'| < s + 1/2``,
+so ``|p - q| < D + s + 1/2 = reach + 1/2``: every receiving cell lies within
+``reach`` cells of the sender per axis, a ``(2 reach + 1)^2`` neighbourhood.
+
+Two implementations of step 4 agree to float rounding (the same pairs, the same
+weights, the same random draws): ``reintegrate_reference`` gathers the whole
+``(2 reach + 1)^2`` neighbourhood of every cell, as in Plantec et al.'s code;
+``reintegrate`` uses that the overlap factorises per axis and that a square of
+side ``2s`` covers at most ``floor(2s) + 2`` cells per axis (3 for ``s = 0.65``),
+so each cell sends its matter to 9 cells by a scatter-add, instead of every cell
+checking 121 possible senders.  On GPU, XLA's float scatter-add may sum in a
+varying order (set ``XLA_FLAGS=--xla_gpu_deterministic_ops=true`` for bitwise
+repeatable runs there); on CPU runs are bitwise repeatable.
+
+Departures from Plantec et al.'s code, following the thesis's text and Table 5.1:
+the kernel radius is ``r R`` with ``R`` in ``[2, 25]`` (their code uses ``R + 15``)
+with a hard edge at ``|x| = r R`` (theirs is a sigmoid); the grid is a torus;
+``alpha`` uses ``theta_A = 1`` (their code divides by 2 or by ``C``); only ``dt F``
+is clipped (their parameter-embedded variant also clips ``F`` itself to
+``reach - s``, which caps displacements at ``dt (reach - s) = 0.87`` cells); and the
+parameter vector is drawn with a fresh key every step with probabilities
+``exp(received matter)`` among the senders, as Section 5.3 writes it (their code
+draws proportionally to the received matter, with a fixed key).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+RANGE_FIELDS = ("R_range", "r_range", "h_range", "a_range", "b_range", "w_range", "mu_range", "sigma_range")
+
+
+@dataclass(frozen=True)
+class FlowLeniaConfig:
+    """A Flow Lenia world and the parameter space of its random systems (Table 5.1).
+
+    ``reach`` is the neighbourhood radius of reintegration tracking; ``dt F`` is
+    clipped per axis to ``reach - s`` (see the module docstring).  ``mass_epsilon``:
+    a cell receiving less matter than this gets ``P = 0``.
+    """
+
+    height: int = 128
+    width: int = 128
+    kernels: int = 10
+    channels: int = 1
+    rings: int = 3
+    steps: int = 50
+    patch_size: int = 40
+    dt: float = 0.2
+    s: float = 0.65
+    n: float = 2.0
+    theta_A: float = 1.0
+    reach: int = 5
+    mass_epsilon: float = 1e-12
+    R_range: tuple[float, float] = (2.0, 25.0)
+    r_range: tuple[float, float] = (0.2, 1.0)
+    h_range: tuple[float, float] = (0.0, 1.0)
+    a_range: tuple[float, float] = (0.0, 1.0)
+    b_range: tuple[float, float] = (0.0, 1.0)
+    w_range: tuple[float, float] = (0.01, 0.5)
+    mu_range: tuple[float, float] = (0.05, 0.5)
+    sigma_range: tuple[float, float] = (0.001, 0.2)
+
+    def __post_init__(self):
+        for name in ("height", "width", "kernels", "rings", "patch_size", "reach"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not isinstance(self.steps, (int, np.integer)) or self.steps < 0:
+            raise ValueError(f"steps must be a non-negative integer, got {self.steps!r}")
+        if self.channels != 1:
+            raise ValueError(f"only single-channel Flow Lenia is implemented (channels=1), got {self.channels}")
+        if self.patch_size > min(self.height, self.width):
+            raise ValueError(f"patch_size {self.patch_size} is larger than the {self.height}x{self.width} grid")
+        for name in ("dt", "s", "n", "theta_A"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.mass_epsilon < 0:
+            raise ValueError(f"mass_epsilon must be non-negative, got {self.mass_epsilon!r}")
+        if self.reach < self.s:
+            raise ValueError(f"reach ({self.reach}) must be at least s ({self.s}): the displacement bound "
+                             f"reach - s would be negative")
+        if 2 * self.reach + 1 > min(self.height, self.width):
+            raise ValueError(f"the reintegration neighbourhood (2 * reach + 1 = {2 * self.reach + 1} cells) "
+                             f"does not fit in the {self.height}x{self.width} grid")
+        for name in RANGE_FIELDS:
+            low, high = getattr(self, name)
+            if not low <= high:
+                raise ValueError(f"{name} = ({low}, {high}): low must not exceed high")
+        for name in ("R_range", "r_range", "w_range", "sigma_range"):
+            if not getattr(self, name)[0] > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+
+    @property
+    def max_displacement(self) -> float:
+        """``D = reach - s``: the bound on ``|dt F|`` per axis."""
+        return self.reach - self.s
+
+    @property
+    def slots(self) -> int:
+        """Cells per axis a square of side ``2s`` can cover: ``floor(2s) + 2``."""
+        return math.floor(2 * self.s) + 2
+
+
+@struct.dataclass
+class System:
+    """The parameters of one Flow Lenia system (Table 5.1), with its kernels' FFTs.
+
+    ``R`` is shared; ``r``, ``mu``, ``sigma`` are per kernel (``(|K|,)``) and ``a``,
+    ``b``, ``w`` per kernel and ring (``(|K|, rings)``).  ``kernels_fft`` is the
+    ``rfft2`` of ``kernel_fields``, ``(H, W // 2 + 1, |K|)``.
+    """
+
+    R: jax.Array
+    r: jax.Array
+    a: jax.Array
+    b: jax.Array
+    w: jax.Array
+    mu: jax.Array
+    sigma: jax.Array
+    kernels_fft: jax.Array
+
+
+@struct.dataclass
+class State:
+    """Activations ``A`` ``(H, W, C)`` and parameter map ``P`` ``(H, W, |K|)``."""
+
+    A: jax.Array
+    P: jax.Array
+
+
+# ----- Lenia: kernels, growth, affinity -----
+
+def torus_distances(height: int, width: int) -> jax.Array:
+    """Distance of every cell to cell ``(0, 0)`` on the ``height x width`` torus."""
+    rows, cols = np.arange(height), np.arange(width)
+    dy = np.minimum(rows, height - rows)[:, None]
+    dx = np.minimum(cols, width - cols)[None, :]
+    return jnp.asarray(np.sqrt(dy**2 + dx**2), dtype=jnp.float32)
+
+
+def kernel_fields(R: jax.Array, r: jax.Array, a: jax.Array, b: jax.Array, w: jax.Array,
+                  height: int, width: int) -> jax.Array:
+    """Kernels of concentric Gaussian bumps (Section 5.2), centred on cell ``(0, 0)``.
+
+    ``K_k(x) = sum_i b_ki exp(-(|x| / (r_k R) - a_ki)^2 / (2 w_ki^2))`` for
+    ``|x| <= r_k R`` (torus distances) and 0 beyond, divided by its sum over the
+    grid.  Computed in log space, so that kernels whose rings are all far from
+    the centre (``a`` near 1, ``w`` small) still normalise to one instead of
+    underflowing to 0 / 0.  Returns ``(H, W, |K|)``.
+    """
+    radius = r * R  # (K,)
+    d = torus_distances(height, width)[..., None] / radius  # (H, W, K)
+    log_b = jnp.log(jnp.maximum(b, jnp.finfo(jnp.float32).tiny))
+    log_rings = log_b - (d[..., None] - a) ** 2 / (2 * w**2)  # (H, W, K, rings)
+    log_k = jax.nn.logsumexp(log_rings, axis=-1)
+    log_k = jnp.where(d <= 1.0, log_k, -jnp.inf)  # the centre cell is always inside
+    return jax.nn.softmax(log_k, axis=(0, 1))
+
+
+def growth(u: jax.Array, mu: jax.Array, sigma: jax.Array) -> jax.Array:
+    """Growth function of Eq. 5.1: ``G(u) = 2 exp(-(u - mu)^2 / (2 sigma^2)) - 1``."""
+    return 2.0 * jnp.exp(-((u - mu) ** 2) / (2.0 * sigma**2)) - 1.0
+
+
+def sample_system(key: jax.Array, cfg: FlowLeniaConfig) -> System:
+    """A random system, every parameter uniform in its Table 5.1 range.  The kernel
+    weights ``h`` are not part of it: they live in the parameter map ``P``
+    (``initial_state`` draws them in ``h_range``)."""
+    k = cfg.kernels
+    kR, kr, ka, kb, kw, kmu, ksig = jax.random.split(key, 7)
+
+    def uniform(key, shape, bounds):
+        return jax.random.uniform(key, shape, minval=bounds[0], maxval=bounds[1])
+
+    R = uniform(kR, (), cfg.R_range)
+    r = uniform(kr, (k,), cfg.r_range)
+    a = uniform(ka, (k, cfg.rings), cfg.a_range)
+    b = uniform(kb, (k, cfg.rings), cfg.b_range)
+    w = uniform(kw, (k, cfg.rings), cfg.w_range)
+    fields = kernel_fields(R, r, a, b, w, cfg.height, cfg.width)
+    return System(R=R, r=r, a=a, b=b, w=w, mu=uniform(kmu, (k,), cfg.mu_range),
+                  sigma=uniform(ksig, (k,), cfg.sigma_range),
+                  kernels_fft=jnp.fft.rfft2(fields, axes=(0, 1)))
+
+
+def initial_state(key: jax.Array, cfg: FlowLeniaConfig) -> State:
+    """A ``patch_size``-square patch of uniform matter in the centre of an empty grid
+    (Section 5.3.1), with ``P`` uniform in ``h_range`` on the patch and 0 elsewhere."""
+    ka, kp = jax.random.split(key)
+    p = cfg.patch_size
+    top, left = (cfg.height - p) // 2, (cfg.width - p) // 2
+    patch_a = jax.random.uniform(ka, (p, p, cfg.channels))
+    patch_p = jax.random.uniform(kp, (p, p, cfg.kernels), minval=cfg.h_range[0], maxval=cfg.h_range[1])
+    A = jnp.zeros((cfg.height, cfg.width, cfg.channels)).at[top:top + p, left:left + p].set(patch_a)
+    P = jnp.zeros((cfg.height, cfg.width, cfg.kernels)).at[top:top + p, left:left + p].set(patch_p)
+    return State(A=A, P=P)
+
+
+def potentials(system: System, A: jax.Array) -> jax.Array:
+    """``K_k * A`` for every kernel, by FFT on the torus: ``(H, W, |K|)``."""
+    height, width = A.shape[:2]
+    fa = jnp.fft.rfft2(A[..., 0])
+    return jnp.fft.irfft2(fa[..., None] * system.kernels_fft, s=(height, width), axes=(0, 1))
+
+
+def affinity(system: System, state: State) -> jax.Array:
+    """The parameter-embedded affinity of Section 5.3,
+    ``U(p) = sum_k P_k(p) G_k(K_k * A)(p)``: ``(H, W, C)``."""
+    g = growth(potentials(system, state.A), system.mu, system.sigma)
+    return jnp.sum(state.P * g, axis=-1, keepdims=True)
+
+
+def sobel(x: jax.Array) -> jax.Array:
+    """Periodic Sobel gradient of ``x`` ``(H, W, ...)``: ``(H, W, ..., 2)``, the
+    derivative along rows (axis 0) then along columns (axis 1).
+
+    Unnormalised filters ``[1, 2, 1] x [1, 0, -1]`` as in Flow Lenia's code: on a
+    linear field they give 8 times the slope.
+    """
+    def smooth(z, axis):
+        return jnp.roll(z, 1, axis) + 2.0 * z + jnp.roll(z, -1, axis)
+
+    def diff(z, axis):
+        return jnp.roll(z, -1, axis) - jnp.roll(z, 1, axis)
+
+    return jnp.stack([smooth(diff(x, 0), 1), smooth(diff(x, 1), 0)], axis=-1)
+
+
+def flow(U: jax.Array, A: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
+    """``F = (1 - alpha) grad U - alpha grad A_Sigma`` with
+    ``alpha = clip((A_Sigma / theta_A)^n, 0, 1)`` (Section 5.2): ``(H, W, C, 2)``."""
+    a_sum = jnp.sum(A, axis=-1, keepdims=True)  # (H, W, 1)
+    alpha = jnp.clip((a_sum / cfg.theta_A) ** cfg.n, 0.0, 1.0)[..., None]
+    return (1.0 - alpha) * sobel(U) - alpha * sobel(a_sum)
+
+
+def displacement(F: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
+    """``dt F`` clipped per axis to ``[-D, D]``, ``D = reach - s``."""
+    bound = cfg.max_displacement
+    return jnp.clip(cfg.dt * F, -bound, bound)
+
+
+# ----- reintegration tracking -----
+
+def overlap(i: jax.Array, x: jax.Array, s: float) -> jax.Array:
+    """Length of ``[x - s, x + s]`` inside the unit cell ``[i - 1/2, i + 1/2]``."""
+    return jnp.maximum(jnp.minimum(x + s, i + 0.5) - jnp.maximum(x - s, i - 0.5), 0.0)
+
+
+def first_cell(x: jax.Array, s: float) -> jax.Array:
+    """The cell holding ``x - s`` (integer-valued float): the first cell, relative
+    to the sender, that its square can cover along one axis.
+
+    Corrected for the rounding of ``x - s + 1/2``, so that ``overlap`` is exactly 0
+    for the cell before it: no matter falls outside the sender's window of
+    ``slots`` cells (the window's far end has a margin of at least
+    ``floor(2s) + 1 - 2s > 0`` cells).
+    """
+    lo = x - s
+    base = jnp.floor(lo + 0.5)
+    return jnp.where(base - 0.5 > lo, base - 1.0, base)
+
+
+def axis_weights(x: jax.Array, s: float, slots: int) -> tuple[jax.Array, jax.Array]:
+    """Along one axis, the first cell a sender's square covers (``first_cell``) and
+    the fractions of the square inside that cell and the next ``slots - 1``:
+    ``overlap / 2s``, ``(slots, ...)``.
+
+    ``2s`` is taken as the sum of the overlaps (equal in exact arithmetic) and the
+    largest fraction as one minus the others, so that the fractions sum to one
+    up to a single rounding: without this, the rounding of the divisions biases
+    the total mass by about -4e-8 per step.
+    """
+    base = first_cell(x, s)
+    over = jnp.stack([overlap(base + j, x, s) for j in range(slots)])
+    frac = over / jnp.sum(over, axis=0)
+    largest = jnp.arange(slots).reshape((slots,) + (1,) * x.ndim) == jnp.argmax(over, axis=0)
+    rest = jnp.sum(jnp.where(largest, 0.0, frac), axis=0)
+    return base, jnp.where(largest, 1.0 - rest, frac)
+
+
+def _noise(key: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
+    """Gumbel noise, one draw per sender and slot: ``(slots, slots, H, W)``."""
+    return jax.random.gumbel(key, (cfg.slots, cfg.slots, cfg.height, cfg.width))
+
+
+def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
+                cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
+    """Reintegration tracking with softmax sampling of ``P`` (Sections 5.2 and 5.3).
+
+    ``A^{t+dt}(p) = sum_q A(q) I(q, p)`` with ``I(q, p)`` the fraction of the square
+    of half-side ``s`` centred on ``q + disp(q)`` inside cell ``p``; the new
+    ``P(p)`` is ``P(q)`` for a sender ``q`` drawn with probability proportional to
+    ``exp(A(q) I(q, p))`` (Gumbel-max), and 0 where less than ``mass_epsilon``
+    arrives.  ``A`` ``(H, W, 1)``, ``P`` ``(H, W, |K|)``, ``disp`` ``(H, W, 1, 2)``.
+
+    Each sender covers ``slots x slots`` cells starting at ``first_cell`` per axis;
+    its parcels are scatter-added to them (9 per cell instead of 121 gathers).
+    """
+    height, width = A.shape[:2]
+    n = height * width
+    k = cfg.slots
+    a, dy, dx = A[..., 0], disp[..., 0, 0], disp[..., 0, 1]
+    base_y, weight_y = axis_weights(dy, cfg.s, k)  # (H, W), (k, H, W)
+    base_x, weight_x = axis_weights(dx, cfg.s, k)
+    parcels = a * weight_y[:, None] * weight_x[None, :]  # (k, k, H, W): a * share_y * share_x
+    rows = jnp.arange(height)[:, None] + base_y.astype(jnp.int32) + jnp.arange(k)[:, None, None]
+    cols = jnp.arange(width)[None, :] + base_x.astype(jnp.int32) + jnp.arange(k)[:, None, None]
+    target = ((rows % height)[:, None] * width + (cols % width)[None, :]).reshape(-1)
+    parcels = parcels.reshape(-1)
+    new_a = jnp.zeros(n, A.dtype).at[target].add(parcels)
+
+    sent = parcels > 0
+    score = jnp.where(sent, parcels + _noise(key, cfg).reshape(-1), -jnp.inf)
+    best = jnp.full(n, -jnp.inf, score.dtype).at[target].max(score)
+    pair = jnp.arange(score.shape[0], dtype=jnp.int32)
+    winner = jnp.full(n, -1, jnp.int32).at[target].max(jnp.where(sent & (score == best[target]), pair, -1))
+    keep = (winner >= 0) & (new_a > cfg.mass_epsilon)
+    new_p = jnp.where(keep[:, None], P.reshape(n, -1)[winner % n], 0.0)
+    return new_a.reshape(A.shape), new_p.reshape(P.shape)
+
+
+def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
+                          cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
+    """``reintegrate`` by gathering the full ``(2 reach + 1)^2`` neighbourhood of every
+    cell (Plantec et al.'s scheme): slower, for checks and benchmarks.
+
+    Every receiver visits every offset; a pair exchanges matter when the offset
+    falls in the sender's window, with the same per-axis fractions
+    (``axis_weights``) and the same random draws (Gumbel noise per sender and
+    slot), so both give the same ``P`` and the same ``A`` up to the order of the
+    final sums.  ``tests/test_flow_lenia.py`` checks both against a float64
+    computation of the overlap areas.
+    """
+    k, d = cfg.slots, cfg.reach
+    a, dy, dx = A[..., 0], disp[..., 0, 0], disp[..., 0, 1]
+    base_y, weight_y = axis_weights(dy, cfg.s, k)  # (H, W), (k, H, W) per sender
+    base_x, weight_x = axis_weights(dx, cfg.s, k)
+    base = jnp.stack([base_y, base_x]).astype(jnp.int32)
+    noise = _noise(key, cfg).reshape(k * k, *a.shape)
+    offsets = jnp.array([(oy, ox) for oy in range(-d, d + 1) for ox in range(-d, d + 1)], dtype=jnp.int32)
+
+    def receive(carry, offset):
+        total, best, best_p = carry
+
+        def from_sender(z, axes=(0, 1)):  # z at q = p - offset, for every receiver p
+            return jnp.roll(z, (offset[0], offset[1]), axis=axes)
+
+        slot = offset[:, None, None] - from_sender(base, axes=(1, 2))  # (2, H, W)
+        in_window = jnp.all((slot >= 0) & (slot < k), axis=0)
+        slot = jnp.clip(slot, 0, k - 1)
+
+        def pick(z, i):  # z (k..., H, W) of the sender, at the pair's slot
+            return jnp.take_along_axis(from_sender(z, axes=(1, 2)), i[None], axis=0)[0]
+
+        share_y = jnp.where(in_window, pick(weight_y, slot[0]), 0.0)
+        parcel = from_sender(a) * share_y * pick(weight_x, slot[1])
+        g = pick(noise, slot[0] * k + slot[1])
+        score = jnp.where((parcel > 0) & in_window, parcel + g, -jnp.inf)
+        better = score > best
+        best_p = jnp.where(better[..., None], from_sender(P), best_p)
+        return (total + parcel, jnp.where(better, score, best), best_p), None
+
+    init = (jnp.zeros_like(a), jnp.full(a.shape, -jnp.inf), jnp.zeros_like(P))
+    (total, best, best_p), _ = jax.lax.scan(receive, init, offsets)
+    keep = (best > -jnp.inf) & (total > cfg.mass_epsilon)
+    return total[..., None], jnp.where(keep[..., None], best_p, 0.0)
+
+
+# ----- simulation -----
+
+def step(system: System, state: State, key: jax.Array, cfg: FlowLeniaConfig) -> State:
+    """One Flow Lenia step: affinity, flow, displacement, reintegration."""
+    F = flow(affinity(system, state), state.A, cfg)
+    A, P = reintegrate(state.A, state.P, displacement(F, cfg), key, cfg)
+    return State(A=A, P=P)
+
+
+@partial(jax.jit, static_argnames=("cfg", "steps"))
+def rollout(system: System, state: State, key: jax.Array, cfg: FlowLeniaConfig,
+            steps: int | None = None) -> State:
+    """An episode of ``steps`` (default ``cfg.steps``) steps: states stacked
+    ``(T + 1, ...)``, the initial state first."""
+    steps = cfg.steps if steps is None else steps
+
+    def body(current, k):
+        nxt = step(system, current, k, cfg)
+        return nxt, nxt
+
+    _, later = jax.lax.scan(body, state, jax.random.split(key, steps))
+    return jax.tree_util.tree_map(lambda x0, xs: jnp.concatenate([x0[None], xs]), state, later)
+
+
+@partial(jax.jit, static_argnames=("cfg", "batch"))
+def simulate_batch(key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> tuple[System, State]:
+    """``batch`` random systems, each from its own random initial state: the systems
+    and their episodes (``A`` ``(batch, T + 1, H, W, C)``, ``P`` ``(batch, T + 1, H, W, |K|)``)."""
+    if batch < 1:
+        raise ValueError(f"batch must be a positive integer, got {batch}")
+    k_sys, k_init, k_run = jax.random.split(key, 3)
+    systems = jax.vmap(sample_system, in_axes=(0, None))(jax.random.split(k_sys, batch), cfg)
+    states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
+    episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(systems, states,
+                                                                    jax.random.split(k_run, batch))
+    return systems, episodes
