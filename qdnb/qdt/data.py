@@ -27,6 +27,7 @@ from flax import struct
 from qdnb import paths
 from qdnb.provenance import load_summary
 from qdnb.qd.cvt import nearest
+from qdnb.qd.metrics import grid_cell
 from qdnb.qd.repertoire import Repertoire
 from qdnb.qd.reproducibility import Player, load_repertoires, run_environment, save_repertoires
 from qdnb.scale import ReproducibilityConfig, config_hash
@@ -178,9 +179,8 @@ def removed_tiles(descriptors: np.ndarray, low, high, tiles: int) -> np.ndarray:
     """The "Tiles" region: split the descriptor space into ``tiles x tiles``
     squares and remove every other one, as the dark squares of a checkerboard
     (square ``(i, j)`` removed when ``i + j`` is odd): half the space, in blocks."""
-    rel = (np.asarray(descriptors) - np.asarray(low)) / (np.asarray(high) - np.asarray(low))
-    idx = np.clip(np.floor(rel * tiles).astype(int), 0, tiles - 1)
-    return (idx[..., 0] + idx[..., 1]) % 2 == 1
+    cell = np.asarray(grid_cell(jnp.asarray(descriptors), (tiles, tiles), low, high))  # i * tiles + j
+    return (cell // tiles + cell % tiles) % 2 == 1
 
 
 def removed_upper(descriptors: np.ndarray, low, high) -> np.ndarray:
