@@ -221,12 +221,28 @@ def initial_state(key: jax.Array, cfg: FlowLeniaConfig) -> State:
     (Section 5.3.1), with ``P`` uniform in ``h_range`` on the patch and 0 elsewhere."""
     ka, kp = jax.random.split(key)
     p = cfg.patch_size
-    top, left = (cfg.height - p) // 2, (cfg.width - p) // 2
     patch_a = jax.random.uniform(ka, (p, p, cfg.channels))
     patch_p = jax.random.uniform(kp, (p, p, cfg.kernels), minval=cfg.h_range[0], maxval=cfg.h_range[1])
+    return place_patch(patch_a, patch_p, cfg)
+
+
+def place_patch(patch_a: jax.Array, patch_p: jax.Array, cfg: FlowLeniaConfig) -> State:
+    """The state with matter ``patch_a`` ``(p, p, C)`` and parameters ``patch_p``
+    ``(p, p, |K|)`` in the centre of an empty grid (``p = patch_size``)."""
+    p = cfg.patch_size
+    if patch_a.shape != (p, p, cfg.channels) or patch_p.shape != (p, p, cfg.kernels):
+        raise ValueError(f"patches of shapes {patch_a.shape} and {patch_p.shape} do not match "
+                         f"({p}, {p}, {cfg.channels}) and ({p}, {p}, {cfg.kernels})")
+    top, left = (cfg.height - p) // 2, (cfg.width - p) // 2
     A = jnp.zeros((cfg.height, cfg.width, cfg.channels)).at[top:top + p, left:left + p].set(patch_a)
     P = jnp.zeros((cfg.height, cfg.width, cfg.kernels)).at[top:top + p, left:left + p].set(patch_p)
     return State(A=A, P=P)
+
+
+def frames(states: State) -> jax.Array:
+    """``(A, P)`` stacked along channels, ``(..., H, W, C + |K|)``: the images the FLT
+    reads and predicts."""
+    return jnp.concatenate([states.A, states.P], axis=-1)
 
 
 def potentials(system: System, A: jax.Array) -> jax.Array:
@@ -436,3 +452,14 @@ def simulate_batch(key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> tuple[Sy
     episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(systems, states,
                                                                     jax.random.split(k_run, batch))
     return systems, episodes
+
+
+@partial(jax.jit, static_argnames=("cfg", "batch"))
+def simulate_system(system: System, key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> State:
+    """``batch`` episodes of one system, each from its own random initial state
+    (``A`` ``(batch, T + 1, H, W, C)``, ``P`` ``(batch, T + 1, H, W, |K|)``)."""
+    if batch < 1:
+        raise ValueError(f"batch must be a positive integer, got {batch}")
+    k_init, k_run = jax.random.split(key)
+    states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
+    return jax.vmap(lambda st, k: rollout(system, st, k, cfg))(states, jax.random.split(k_run, batch))

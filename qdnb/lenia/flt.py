@@ -1,0 +1,292 @@
+"""The Flow Lenia Transformer (FLT, Section 5.3.1): a causal GPT over the frames of
+a Flow Lenia episode, with CNN embeddings in and out.
+
+An episode is the sequence of frames ``x_t = (A^t, P^t)`` stacked along channels
+(``(H, W, 1 + |K|)``, ``flow_lenia.frames``).  Each frame is encoded by a CNN into
+one token; the learned embedding of timestep ``t`` is added and a causal
+transformer (the QDT's pre-norm GPT-2 blocks, ``qdnb.qdt.model.Block``) runs over
+the tokens; a CNN decoder turns the hidden state at token ``t`` into the
+prediction of frame ``t + 1``: ``A`` through a softplus (matter is non-negative and
+may exceed 1) and ``P`` through a sigmoid (kernel weights live in ``[0, 1]``).
+
+Training is teacher-forced over whole episodes (``loss_fn``, Eq. 5.3).
+Evaluation (``unroll``) starts from ``x_0`` only and feeds every prediction back
+as the next input, keeping the keys and values of the earlier tokens (a cache),
+so each step costs one token; ``unroll(..., cached=False)`` recomputes the
+whole prefix every step and is the reference the cache is tested against.
+
+The encoder has ``len(features)`` stride-2 convolutions (circular padding: the
+grid is a torus), so ``H`` and ``W`` must be multiples of ``2**len(features)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import linen as nn
+from tqdm.auto import tqdm
+
+from qdnb.lenia import flow_lenia as fl
+from qdnb.qdt.model import Block
+
+Cache = tuple[tuple[jax.Array, jax.Array], ...]
+
+
+class FrameEncoder(nn.Module):
+    """``(N, H, W, C)`` frames to ``(N, D)`` tokens: stride-2 convolutions, then a
+    dense layer on the flattened feature map."""
+
+    features: tuple[int, ...]
+    embed_dim: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> tuple[jax.Array, list[jax.Array]]:
+        """The tokens and the feature map of every resolution (finest first)."""
+        maps = []
+        for f in self.features:
+            x = nn.relu(nn.Conv(f, (3, 3), strides=(2, 2), padding="CIRCULAR")(x))
+            maps.append(x)
+        return nn.Dense(self.embed_dim)(x.reshape(x.shape[0], -1)), maps
+
+
+class FrameDecoder(nn.Module):
+    """``(N, D)`` hidden states to ``(N, H, W, C)`` frames: a dense layer to the
+    coarsest feature map, then stride-2 transposed convolutions back to ``H x W``,
+    the last one straight to the frame's channels; softplus on ``A``, sigmoid on
+    ``P``.  (A further full-resolution convolution made training 2.5x slower on
+    CPU.)"""
+
+    features: tuple[int, ...]
+    height: int
+    width: int
+    channels: int
+
+    @nn.compact
+    def __call__(self, h: jax.Array, skips: list[jax.Array] | None = None) -> jax.Array:
+        scale = 2 ** len(self.features)
+        x = nn.Dense((self.height // scale) * (self.width // scale) * self.features[-1])(h)
+        x = nn.relu(x).reshape(-1, self.height // scale, self.width // scale, self.features[-1])
+        widths = list(reversed(self.features[:-1])) + [self.channels]
+        for level, f in zip(reversed(range(len(self.features))), widths):
+            if skips is not None:  # U-Net: the input frame's features at this resolution
+                x = jnp.concatenate([x, skips[level]], axis=-1)
+            x = nn.ConvTranspose(f, (3, 3), strides=(2, 2), padding="SAME")(x)
+            x = nn.relu(x) if level else x
+        return jnp.concatenate([nn.softplus(x[..., :1]), nn.sigmoid(x[..., 1:])], axis=-1)
+
+
+class FLT(nn.Module):
+    """``__call__(inputs)`` with ``inputs (B, T, H, W, C)`` (frames ``x_0 .. x_{T-1}``)
+    returns the predictions of ``x_1 .. x_T``, ``(B, T, H, W, C)``, in one causal pass."""
+
+    height: int
+    width: int
+    channels: int
+    max_steps: int  # the number of predicted frames of an episode (T)
+    embed_dim: int = 128
+    num_layers: int = 2
+    num_heads: int = 4
+    features: tuple[int, ...] = (16, 32, 64)
+    dropout: float = 0.0
+    skip: bool = False  # the decoder also sees the input frame's CNN features (U-Net skips)
+
+    def setup(self):
+        scale = 2 ** len(self.features)
+        if self.height % scale or self.width % scale:
+            raise ValueError(f"the {self.height}x{self.width} grid is not a multiple of 2**len(features) = {scale}")
+        if self.embed_dim % self.num_heads:
+            raise ValueError(f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}")
+        self.encoder = FrameEncoder(self.features, self.embed_dim)
+        self.decoder = FrameDecoder(self.features, self.height, self.width, self.channels)
+        self.embed_timestep = nn.Embed(self.max_steps, self.embed_dim)
+        self.embed_ln = nn.LayerNorm()
+        self.drop = nn.Dropout(self.dropout)
+        self.blocks = [Block(self.num_heads, self.dropout) for _ in range(self.num_layers)]
+        self.ln_final = nn.LayerNorm()
+
+    def tokens(self, inputs: jax.Array, timesteps: jax.Array) -> tuple[jax.Array, list[jax.Array] | None]:
+        """Tokens ``(B, T, D)`` of the frames ``(B, T, H, W, C)``, and their feature maps
+        (flattened to ``B T``) when the decoder uses skips."""
+        b, t = inputs.shape[:2]
+        encoded, maps = self.encoder(inputs.reshape((b * t,) + inputs.shape[2:]))
+        tokens = self.embed_ln(encoded.reshape(b, t, -1) + self.embed_timestep(timesteps))
+        return tokens, (maps if self.skip else None)
+
+    def transformer(self, x, caches, start, deterministic):
+        x = self.drop(x, deterministic=deterministic)
+        new_caches = []
+        for block, cache in zip(self.blocks, caches):
+            x, cache = block(x, cache, start, deterministic)
+            new_caches.append(cache)
+        return self.ln_final(x), tuple(new_caches)
+
+    def decode(self, hidden: jax.Array, maps: list[jax.Array] | None) -> jax.Array:
+        b, t = hidden.shape[:2]
+        frames = self.decoder(hidden.reshape(b * t, -1), maps)
+        return frames.reshape(b, t, self.height, self.width, self.channels)
+
+    def __call__(self, inputs: jax.Array, deterministic: bool = True) -> jax.Array:
+        tokens, maps = self.tokens(inputs, jnp.arange(inputs.shape[1]))
+        hidden, _ = self.transformer(tokens, (None,) * self.num_layers, 0, deterministic)
+        return self.decode(hidden, maps)
+
+    def init_cache(self, batch: int, dtype=jnp.float32) -> Cache:
+        shape = (batch, self.max_steps, self.num_heads, self.embed_dim // self.num_heads)
+        return tuple((jnp.zeros(shape, dtype), jnp.zeros(shape, dtype)) for _ in range(self.num_layers))
+
+    def decode_step(self, frame: jax.Array, t: jax.Array, cache: Cache) -> tuple[jax.Array, Cache]:
+        """Feed frame ``x_t`` ``(B, H, W, C)`` (token ``t``) and predict ``x_{t+1}``."""
+        tokens, maps = self.tokens(frame[:, None], t[None])
+        hidden, cache = self.transformer(tokens, cache, t, True)
+        return self.decode(hidden, maps)[:, 0], cache
+
+
+@dataclass(frozen=True)
+class FLTConfig:
+    """The model and its training: ``train_steps`` gradient steps, each on a batch
+    of ``batch_size`` episodes simulated on the fly (never the same twice)."""
+
+    embed_dim: int = 128
+    num_layers: int = 2
+    num_heads: int = 4
+    features: tuple[int, ...] = (16, 32, 64)
+    dropout: float = 0.0
+    skip: bool = False
+    batch_size: int = 8
+    learning_rate: float = 1e-3
+    train_steps: int = 1000
+
+    def __post_init__(self):
+        for name in ("embed_dim", "num_layers", "num_heads", "batch_size", "train_steps"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.embed_dim % self.num_heads:
+            raise ValueError(f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}")
+        if not self.features or min(self.features) < 1:
+            raise ValueError(f"features must be a non-empty tuple of positive widths, got {self.features}")
+        if not 0.0 <= self.dropout < 1.0 or not self.learning_rate > 0:
+            raise ValueError(f"dropout must be in [0, 1) and learning_rate positive, got "
+                             f"{self.dropout} and {self.learning_rate}")
+
+
+def make_model(world: fl.FlowLeniaConfig, cfg: FLTConfig) -> FLT:
+    return FLT(world.height, world.width, world.channels + world.kernels, world.steps, cfg.embed_dim,
+               cfg.num_layers, cfg.num_heads, cfg.features, cfg.dropout, cfg.skip)
+
+
+def init_params(model: FLT, key: jax.Array) -> Any:
+    return model.init(key, jnp.zeros((1, 2, model.height, model.width, model.channels)))
+
+
+def loss_fn(model: FLT, params: Any, episodes: jax.Array, key: jax.Array | None = None) -> jax.Array:
+    """Eq. 5.3 with teacher forcing: frames ``x_0 .. x_{T-1}`` in, ``x_1 .. x_T``
+    predicted, the squared error averaged over episodes, timesteps, cells and
+    channels.  Eq. 5.3 sums ``||A_t - Â_t||^2 + ||P_t - P̂_t||^2`` over cells and
+    averages over t: this is the same up to the constant factor
+    ``1 / (H W (1 + |K|))``, with the same relative weight of ``A`` and ``P``."""
+    rngs = None if key is None else {"dropout": key}
+    pred = model.apply(params, episodes[:, :-1], deterministic=key is None, rngs=rngs)
+    return jnp.mean((pred - episodes[:, 1:]) ** 2)
+
+
+def make_train_step(model: FLT, optimizer: optax.GradientTransformation):
+    """``(params, opt_state, episodes, key) -> (params, opt_state, loss)``, not jitted
+    (it is called inside ``train``'s jitted loop and jitted by the tests)."""
+
+    def step(params, opt_state, episodes, key):
+        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, episodes, key))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    return step
+
+
+@partial(jax.jit, static_argnames=("model", "cached"))
+def unroll(model: FLT, params: Any, frame0: jax.Array, cached: bool = True) -> jax.Array:
+    """From ``x_0`` ``(B, H, W, C)`` alone, predict ``x_1 .. x_T`` autoregressively,
+    each prediction fed back as the next input: ``(B, T, H, W, C)``."""
+    steps = model.max_steps
+    if cached:
+        def body(carry, t):
+            frame, cache = carry
+            nxt, cache = model.apply(params, frame, t, cache, method=FLT.decode_step)
+            return (nxt, cache), nxt
+
+        cache = model.apply(params, frame0.shape[0], method=FLT.init_cache)
+        _, preds = jax.lax.scan(body, (frame0, cache), jnp.arange(steps))
+    else:  # the whole prefix every step; the not yet predicted frames are zeros, hidden by causality
+        def body(inputs, t):
+            nxt = model.apply(params, inputs)[:, t]
+            # write x_{t+1} at input position t + 1 (the last prediction has no position: the write is dropped)
+            inputs = inputs.at[:, t + 1].set(nxt, mode="drop")
+            return inputs, nxt
+
+        inputs = jnp.zeros((frame0.shape[0], steps) + frame0.shape[1:]).at[:, 0].set(frame0)
+        _, preds = jax.lax.scan(body, inputs, jnp.arange(steps))
+    return preds.swapaxes(0, 1)
+
+
+def frame_errors(pred: jax.Array, truth: jax.Array) -> dict[str, jax.Array]:
+    """Per episode and timestep: the mean squared error on activations ``A``
+    (``"A"``, the quantity shown in Figures 5.3 to 5.5) and on the whole frame
+    (``"frame"``: ``A`` and ``P``, the loss of Eq. 5.3)."""
+    return {"A": jnp.mean((pred[..., :1] - truth[..., :1]) ** 2, axis=(-3, -2, -1)),
+            "frame": jnp.mean((pred - truth) ** 2, axis=(-3, -2, -1))}
+
+
+@dataclass
+class TrainResult:
+    params: Any
+    losses: np.ndarray  # (train_steps,) teacher-forced loss of every batch
+    mean_frames: np.ndarray  # (T + 1, H, W, C) mean frame per timestep over all training episodes
+    episodes_seen: int
+    max_drift: float  # largest relative change of total mass over all training episodes
+
+
+def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.System, key: jax.Array,
+          progress: bool = True, desc: str = "FLT") -> TrainResult:
+    """Train the FLT on episodes of ``system``, each batch simulated on the fly from
+    fresh random initial states (simulation and gradient step in one jitted
+    call).  Also accumulates the mean frame per timestep of the training
+    episodes (the mean-frame baseline).
+
+    The steps run in a Python loop, not a ``lax.scan``: XLA on CPU runs the
+    convolutions' gradients about 10x slower inside a loop than as a top-level
+    computation, and a step (about half a second) dwarfs the host round-trip."""
+    from qdnb.qdt.train import make_optimizer  # the QDT's Adam with clipping (imported here: no import cycle)
+
+    k_init, k_train = jax.random.split(key)
+    params = init_params(model, k_init)
+    optimizer = make_optimizer(cfg.learning_rate)
+    opt_state = optimizer.init(params)
+    step = make_train_step(model, optimizer)
+
+    @jax.jit
+    def one(params, opt_state, frame_sum, key):
+        k_sim, k_drop = jax.random.split(key)
+        episodes = fl.frames(fl.simulate_system(system, k_sim, world, cfg.batch_size))
+        params, opt_state, loss = step(params, opt_state, episodes, k_drop if cfg.dropout > 0 else None)
+        mass = jnp.sum(episodes[..., :1], axis=(-3, -2, -1))  # (batch, T + 1)
+        drift = jnp.max(jnp.abs(mass / mass[:, :1] - 1.0))
+        return params, opt_state, frame_sum + jnp.sum(episodes, axis=0), loss, drift
+
+    frame_sum = jnp.zeros((world.steps + 1, world.height, world.width, model.channels))
+    losses, drifts = [], []
+    bar = tqdm(range(cfg.train_steps), desc=desc, disable=not progress, mininterval=1.0)
+    for i in bar:
+        params, opt_state, frame_sum, loss, drift = one(params, opt_state, frame_sum,
+                                                        jax.random.fold_in(k_train, i))
+        losses.append(loss)
+        drifts.append(drift)
+        if i % 50 == 49 or i == cfg.train_steps - 1:
+            bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-50:]))):.4g}")
+    seen = cfg.train_steps * cfg.batch_size
+    return TrainResult(params, np.asarray(jnp.stack(losses)), np.asarray(frame_sum / seen), seen,
+                       float(jnp.max(jnp.stack(drifts))))

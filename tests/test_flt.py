@@ -1,0 +1,180 @@
+"""The Flow Lenia Transformer (Section 5.3.1) and the Chapter 5 experiment helpers:
+output shapes and ranges, causality, cached against uncached unrolls, a training
+step lowering the loss, determinism, the surprise-search descriptors on
+hand-made patterns, and config errors.  A 16x16 world with 2 kernels keeps it fast."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from qdnb.lenia import flow_lenia as fl
+from qdnb.lenia.experiment import (
+    SurpriseSearch,
+    evaluate,
+    mass_drift,
+    pattern_descriptors,
+    pick_system,
+    torus_centre,
+)
+from qdnb.lenia.flt import FLT, FLTConfig, init_params, loss_fn, make_model, make_train_step, train, unroll
+from qdnb.qdt.train import make_optimizer
+
+WORLD = fl.FlowLeniaConfig(height=16, width=16, kernels=2, patch_size=5, steps=6, R_range=(2.0, 4.0))
+CFG = FLTConfig(embed_dim=16, num_layers=2, num_heads=2, features=(4, 8), batch_size=2, train_steps=3)
+
+
+@pytest.fixture(scope="module")
+def system():
+    return fl.sample_system(jax.random.PRNGKey(1), WORLD)
+
+
+@pytest.fixture(scope="module")
+def episodes(system):
+    return fl.frames(fl.simulate_system(system, jax.random.PRNGKey(2), WORLD, 3))
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["token-only", "skip"])
+def model_params(request):
+    model = make_model(WORLD, dataclasses.replace(CFG, skip=request.param))
+    return model, init_params(model, jax.random.PRNGKey(0))
+
+
+def test_shapes_and_ranges(model_params, episodes):
+    model, params = model_params
+    pred = model.apply(params, episodes[:, :-1])
+    assert pred.shape == (3, WORLD.steps, 16, 16, 1 + WORLD.kernels)
+    assert bool(jnp.all(pred[..., 0] >= 0.0))  # matter is non-negative
+    assert bool(jnp.all((pred[..., 1:] >= 0.0) & (pred[..., 1:] <= 1.0)))  # kernel weights
+    assert unroll(model, params, episodes[:, 0]).shape == pred.shape
+
+
+def test_a_later_frame_never_changes_an_earlier_prediction(model_params, episodes):
+    model, params = model_params
+    inputs = episodes[:1, :-1]
+    base = model.apply(params, inputs)
+    for k in (1, 3, WORLD.steps - 1):
+        changed = inputs.at[:, k].add(jax.random.uniform(jax.random.PRNGKey(k), inputs.shape[2:]))
+        pred = model.apply(params, changed)
+        np.testing.assert_array_equal(np.asarray(pred[:, :k]), np.asarray(base[:, :k]))
+        assert float(jnp.max(jnp.abs(pred[:, k] - base[:, k]))) > 1e-6  # frame k does inform x_{k+1}
+
+
+def test_cached_unroll_matches_full_recomputation(model_params, episodes):
+    model, params = model_params
+    cached = unroll(model, params, episodes[:, 0])
+    full = unroll(model, params, episodes[:, 0], cached=False)
+    np.testing.assert_allclose(np.asarray(cached), np.asarray(full), atol=1e-5)
+    # the first prediction only sees x_0: it is the teacher-forced one
+    np.testing.assert_allclose(np.asarray(cached[:, 0]), np.asarray(model.apply(params, episodes[:, :-1])[:, 0]),
+                               atol=1e-5)
+
+
+def test_loss_is_eq_5_3_up_to_a_constant(model_params, episodes):
+    model, params = model_params
+    pred = model.apply(params, episodes[:, :-1])
+    a, p = episodes[:, 1:, ..., :1], episodes[:, 1:, ..., 1:]
+    per_step = jnp.sum((a - pred[..., :1]) ** 2, axis=(2, 3, 4)) + jnp.sum((p - pred[..., 1:]) ** 2, axis=(2, 3, 4))
+    eq53 = jnp.mean(per_step)  # mean over t (and episodes) of the squared norms
+    cells = 16 * 16 * (1 + WORLD.kernels)
+    assert float(loss_fn(model, params, episodes)) == pytest.approx(float(eq53) / cells, rel=1e-5)
+
+
+def test_one_training_step_lowers_the_loss_on_a_fixed_batch(model_params, episodes):
+    model, params = model_params
+    optimizer = make_optimizer(1e-3)
+    step = jax.jit(make_train_step(model, optimizer))
+    before = float(loss_fn(model, params, episodes))
+    new_params, _, reported = step(params, optimizer.init(params), episodes, None)
+    assert float(reported) == pytest.approx(before, rel=1e-6)
+    assert float(loss_fn(model, new_params, episodes)) < before
+
+
+def test_training_is_deterministic_and_tracks_the_mean_frame(system):
+    model = make_model(WORLD, CFG)
+    a = train(model, CFG, WORLD, system, jax.random.PRNGKey(5), progress=False)
+    b = train(model, CFG, WORLD, system, jax.random.PRNGKey(5), progress=False)
+    np.testing.assert_array_equal(a.losses, b.losses)
+    assert a.losses.shape == (CFG.train_steps,) and a.episodes_seen == CFG.train_steps * CFG.batch_size
+    assert a.mean_frames.shape == (WORLD.steps + 1, 16, 16, 1 + WORLD.kernels)
+    # the mean frame at t = 0 is the mean initial state: matter only on the patch, total mass ~ patch area / 2
+    assert float(a.mean_frames[0, ..., 0].sum()) == pytest.approx(25 * 0.5, rel=0.3)
+    assert float(a.mean_frames[0, 0, 0, 0]) == 0.0
+    assert a.max_drift < 1e-5
+
+
+def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
+    model, params = model_params
+    mean_frames = np.zeros((WORLD.steps + 1, 16, 16, 1 + WORLD.kernels), np.float32)
+    out = evaluate(model, params, WORLD, system, mean_frames, jax.random.PRNGKey(3), episodes=5, batch=2)
+    for name in ("flt", "persistence", "mean_frame"):
+        assert out["errors"][name]["A"].shape == (5, WORLD.steps)
+    truth = out["truth"]  # the first three episodes
+    # an all-zero mean frame scores the mean square of the truth; persistence scores the change since x_0
+    np.testing.assert_allclose(out["errors"]["mean_frame"]["A"][:3], np.mean(truth[:, 1:, ..., :1] ** 2, axis=(2, 3, 4)),
+                               rtol=1e-5)
+    np.testing.assert_allclose(out["errors"]["persistence"]["A"][:3],
+                               np.mean((truth[:, 1:, ..., :1] - truth[:, :1, ..., :1]) ** 2, axis=(2, 3, 4)), rtol=1e-5)
+    assert out["drift"].shape == (5,) and out["drift"].max() < 1e-5
+
+
+def test_mass_drift_on_a_hand_made_episode():
+    A = jnp.ones((1, 3, 4, 4, 1)).at[0, 1].multiply(1.1).at[0, 2].multiply(0.8)
+    assert float(mass_drift(A)[0]) == pytest.approx(0.2, rel=1e-5)
+
+
+def test_pattern_descriptors_on_hand_made_patterns():
+    h = w = 16
+    blob = jnp.zeros((h, w, 1)).at[4, 4, 0].set(1.0)
+    np.testing.assert_allclose(np.asarray(torus_centre(blob)), [4.0, 4.0], atol=1e-4)
+    moved = jnp.zeros((h, w, 1)).at[4, 7, 0].set(1.0)  # 3 cells to the right
+    displacement, spread = np.asarray(pattern_descriptors(blob, moved))
+    assert displacement == pytest.approx(3 / 16, abs=1e-4) and spread == pytest.approx(0.0, abs=1e-4)
+    wrapped = jnp.zeros((h, w, 1)).at[4, 14, 0].set(1.0)  # across the edge: 6 cells to the left
+    assert float(pattern_descriptors(blob, wrapped)[0]) == pytest.approx(6 / 16, abs=1e-4)
+    pair = jnp.zeros((h, w, 1)).at[4, 2, 0].set(1.0).at[4, 6, 0].set(1.0)  # two cells, 2 either side of column 4
+    displacement, spread = np.asarray(pattern_descriptors(blob, pair))
+    assert displacement == pytest.approx(0.0, abs=1e-4) and spread == pytest.approx(2 / 16, abs=1e-4)
+
+
+def test_surprise_search_keeps_the_most_surprising_per_cell(system):
+    model = make_model(WORLD, CFG)
+    params = init_params(model, jax.random.PRNGKey(0))
+    search = SurpriseSearch(model, WORLD, batch_size=4, bins=(3, 3), max_displacement=0.5, max_spread=0.5)
+    repertoire, history = search.run(params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1,
+                                     progress=False)
+    assert history["surprise"].shape == (12,) and history["descriptors"].shape == (12, 2)
+    filled = np.asarray(repertoire.filled)
+    assert filled.sum() >= 1
+    # every elite is the best evaluation that landed in its cell
+    centroids = np.asarray(repertoire.centroids)
+    desc = np.clip(history["descriptors"], 0.0, 0.5)
+    cells = np.argmin(((desc[:, None] - centroids[None]) ** 2).sum(-1), axis=1)
+    for c in np.flatnonzero(filled):
+        assert float(repertoire.fitnesses[c]) == pytest.approx(history["surprise"][cells == c].max())
+    # genotypes stay valid initial states
+    assert float(repertoire.genotypes["a"].min()) >= 0.0 and float(repertoire.genotypes["a"].max()) <= 1.0
+    again, history2 = search.run(params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1, progress=False)
+    np.testing.assert_array_equal(history["surprise"], history2["surprise"])
+
+
+def test_pick_system_keeps_the_first_localised_system():
+    choice = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2, max_growth=1e9)
+    assert choice.index == 0  # everything qualifies: the first one
+    strict = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2, max_growth=0.0)
+    assert strict.index == int(np.argmin(strict.occupancy))  # nothing qualifies: the most localised
+
+
+def test_config_errors():
+    with pytest.raises(ValueError, match="multiple of 2"):
+        FLT(10, 16, 3, 6, features=(4, 8)).init(jax.random.PRNGKey(0), jnp.zeros((1, 2, 10, 16, 3)))
+    with pytest.raises(ValueError, match="num_heads"):
+        FLTConfig(embed_dim=10, num_heads=4)
+    with pytest.raises(ValueError, match="train_steps"):
+        FLTConfig(train_steps=0)
+    with pytest.raises(ValueError, match="features"):
+        FLTConfig(features=())
+    with pytest.raises(ValueError, match="do not match"):
+        fl.place_patch(jnp.zeros((4, 4, 1)), jnp.zeros((5, 5, 2)), WORLD)
