@@ -12,6 +12,9 @@ import hashlib
 import json
 from dataclasses import dataclass
 
+from qdnb.lenia.flow_lenia import FlowLeniaConfig
+from qdnb.lenia.flt import FLTConfig
+
 SCALES = ("tiny", "small", "paper")
 
 
@@ -244,6 +247,53 @@ class QDTConfig:
         return getattr(self, env_name)
 
 
+@dataclass(frozen=True)
+class FlowLeniaChapterConfig:
+    """Chapter 5: Flow Lenia (Table 5.1), the FLT (Section 5.3.1) and the surprise search.
+
+    ``world`` is the simulator (grid, kernels, Table 5.1 ranges; below ``paper``
+    the grid, the initial patch and the kernel radius ``R`` shrink together);
+    ``flt`` the model and its training.  ``system_candidates`` systems are drawn
+    for ``pick_system`` (``system_probes`` episodes each); ``eval_episodes``
+    held-out episodes score the FLT and the baselines; the surprise search runs
+    ``search_iterations`` MAP-Elites iterations of ``search_batch`` initial
+    states on a ``search_bins`` grid.
+    """
+
+    num_seeds: int
+    world: FlowLeniaConfig
+    flt: FLTConfig
+    gallery_systems: int = 6
+    system_candidates: int = 16
+    system_probes: int = 4
+    eval_episodes: int = 128
+    eval_batch: int = 16
+    search_iterations: int = 20
+    search_batch: int = 32
+    search_bins: tuple[int, int] = (8, 8)
+    search_sigma: float = 0.1
+    search_chunk: int = 5
+
+    def __post_init__(self):
+        if self.eval_episodes < 64:
+            raise ValueError(f"eval_episodes must be at least 64 (Figure 5.5's quartiles), got {self.eval_episodes}")
+        for name in ("num_seeds", "gallery_systems", "system_candidates", "system_probes", "eval_batch",
+                     "search_batch", "search_chunk"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.search_iterations < 0:
+            raise ValueError(f"search_iterations must be non-negative, got {self.search_iterations}")
+        if self.world.steps < 50:
+            raise ValueError(f"Figure 5.4 shows t = 1 .. 50: world.steps must be at least 50, got {self.world.steps}")
+
+
+def lenia_world(size: int, kernels: int = 10) -> FlowLeniaConfig:
+    """A ``size x size`` world with the patch (40 cells at 128) and the largest kernel
+    radius (R <= 25 at 128) scaled with the grid."""
+    return FlowLeniaConfig(height=size, width=size, kernels=kernels, patch_size=max(2, round(40 * size / 128)),
+                           R_range=(2.0, 25.0 * size / 128))
+
+
 _CONFIGS: dict[str, dict[str, object]] = {
     "ch2_primer": {
         "tiny": PrimerConfig(num_seeds=2, num_iterations=40, batch_size=64, chunk_size=20, ns_population=64),
@@ -281,6 +331,21 @@ _CONFIGS: dict[str, dict[str, object]] = {
             num_seeds=3, epochs=100, eval_every=5,
             ant_omni=QDTTask(zones=100, goals=100, selection_episodes=10, episodes_per_policy=3000),
             halfcheetah_uni=QDTTask(zones=50, goals=50, selection_episodes=10, episodes_per_policy=6000)),
+    },
+    "ch5_flow_lenia": {
+        "tiny": FlowLeniaChapterConfig(
+            num_seeds=1, world=lenia_world(16, kernels=4), gallery_systems=3, system_candidates=4, system_probes=2,
+            eval_episodes=64, search_iterations=3, search_batch=8, search_bins=(4, 4), search_chunk=3,
+            flt=FLTConfig(embed_dim=16, num_layers=1, num_heads=2, features=(4, 8), batch_size=4, train_steps=20)),
+        "small": FlowLeniaChapterConfig(
+            num_seeds=1, world=lenia_world(32),
+            flt=FLTConfig(embed_dim=128, num_layers=2, num_heads=4, features=(16, 32, 64), batch_size=8,
+                          learning_rate=1e-3, train_steps=1200)),
+        "paper": FlowLeniaChapterConfig(
+            num_seeds=1, world=lenia_world(128), eval_episodes=256, search_iterations=200, search_batch=64,
+            search_bins=(16, 16),
+            flt=FLTConfig(embed_dim=256, num_layers=4, num_heads=8, features=(32, 64, 128, 128), batch_size=32,
+                          learning_rate=3e-4, train_steps=20_000)),
     },
     "ch3_qdpg": {
         "tiny": QDPGConfig(

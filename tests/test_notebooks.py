@@ -57,3 +57,14 @@ def test_notebook_runs_at_tiny_scale(name):
             for pruning in ("tiles", "upper"):
                 assert {"avg_distance", "avg_distance_removed", "avg_distance_kept"} <= set(gen[pruning])
         assert 0 <= results["claims_held"] <= results["claims_total"] == 2
+    if name == "ch5_flow_lenia":
+        results = summary["results"]
+        steps = summary["config"]["world"]["steps"]
+        assert 0.0 <= results["mass_drift_max"] < 1e-4
+        for predictor in ("flt", "persistence", "mean_frame"):
+            per_step = results[f"{predictor}_mse_per_step"]
+            assert len(per_step) == steps and all(v >= 0.0 for v in per_step)
+            assert results[f"{predictor}_mse_final"] == per_step[-1]
+        assert results["train_loss_final"] > 0.0
+        search = results["surprise_search"]
+        assert search["evaluations"] > 0 and search["best_surprise"] >= search["median_surprise"] >= 0.0
