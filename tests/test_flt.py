@@ -178,3 +178,15 @@ def test_config_errors():
         FLTConfig(features=())
     with pytest.raises(ValueError, match="do not match"):
         fl.place_patch(jnp.zeros((4, 4, 1)), jnp.zeros((5, 5, 2)), WORLD)
+
+
+def test_chapter_config_errors():
+    from qdnb.scale import FlowLeniaChapterConfig, config, lenia_world
+
+    small = config("ch5_flow_lenia", "small")
+    assert small.world.patch_size == 10 and small.world.R_range == (2.0, 6.25)  # 40 and 25 at 128, scaled to 32
+    assert config("ch5_flow_lenia", "paper").world == fl.FlowLeniaConfig()  # the thesis's world
+    with pytest.raises(ValueError, match="at least 64"):
+        dataclasses.replace(small, eval_episodes=32)
+    with pytest.raises(ValueError, match="steps must be at least 50"):
+        FlowLeniaChapterConfig(num_seeds=1, world=dataclasses.replace(lenia_world(16), steps=10), flt=CFG)

@@ -33,7 +33,7 @@ from flax import linen as nn
 from tqdm.auto import tqdm
 
 from qdnb.lenia import flow_lenia as fl
-from qdnb.qdt.model import Block
+from qdnb.qdt.model import Block, run_blocks
 
 Cache = tuple[tuple[jax.Array, jax.Array], ...]
 
@@ -119,12 +119,8 @@ class FLT(nn.Module):
         return tokens, (maps if self.skip else None)
 
     def transformer(self, x, caches, start, deterministic):
-        x = self.drop(x, deterministic=deterministic)
-        new_caches = []
-        for block, cache in zip(self.blocks, caches):
-            x, cache = block(x, cache, start, deterministic)
-            new_caches.append(cache)
-        return self.ln_final(x), tuple(new_caches)
+        x, caches = run_blocks(self.blocks, self.drop(x, deterministic=deterministic), caches, start, deterministic)
+        return self.ln_final(x), caches
 
     def decode(self, hidden: jax.Array, maps: list[jax.Array] | None) -> jax.Array:
         b, t = hidden.shape[:2]

@@ -79,6 +79,16 @@ class Block(nn.Module):
         return x + nn.Dropout(self.dropout)(h, deterministic=deterministic), cache
 
 
+def run_blocks(blocks, x, caches, start, deterministic):
+    """Apply ``blocks`` in order, each with its own cache (``None`` for a full pass);
+    returns the output and the new caches.  Shared by the QDT and the FLT."""
+    new_caches = []
+    for block, cache in zip(blocks, caches):
+        x, cache = block(x, cache, start, deterministic)
+        new_caches.append(cache)
+    return x, tuple(new_caches)
+
+
 class QDT(nn.Module):
     """The Quality-Diversity Transformer (Algorithm 8, Table 4.3).
 
@@ -115,12 +125,8 @@ class QDT(nn.Module):
         return self.embed_ln(stacked.reshape(obs.shape[0], -1, self.embed_dim))
 
     def transformer(self, x, caches, start, deterministic):
-        x = self.drop(x, deterministic=deterministic)
-        new_caches = []
-        for block, cache in zip(self.blocks, caches):
-            x, cache = block(x, cache, start, deterministic)
-            new_caches.append(cache)
-        return self.ln_final(x), tuple(new_caches)
+        x, caches = run_blocks(self.blocks, self.drop(x, deterministic=deterministic), caches, start, deterministic)
+        return self.ln_final(x), caches
 
     def head(self, hidden: jax.Array) -> jax.Array:
         return jnp.tanh(self.predict_action(hidden))  # actions live in [-1, 1]
