@@ -61,15 +61,15 @@ def pick_system(key: jax.Array, world: fl.FlowLeniaConfig, candidates: int = 16,
         raise ValueError(f"candidates and probes must be positive, got {candidates} and {probes}")
     keys = jax.random.split(key, candidates)
     patch = world.patch_size**2 / (world.height * world.width)
-    occ = []
+    systems, occ = [], []
     for k in keys:
         k_sys, k_sim = jax.random.split(k)
-        system = fl.sample_system(k_sys, world)
-        occ.append(float(jnp.mean(occupancy(fl.simulate_system(system, k_sim, world, probes).A[:, -1]))))
+        systems.append(fl.sample_system(k_sys, world))
+        occ.append(float(jnp.mean(occupancy(fl.simulate_system(systems[-1], k_sim, world, probes).A[:, -1]))))
     occ = np.asarray(occ)
     ok = np.flatnonzero(occ <= max_growth * patch)
     index = int(ok[0]) if ok.size else int(np.argmin(occ))
-    return SystemChoice(fl.sample_system(jax.random.split(keys[index])[0], world), index, occ, patch)
+    return SystemChoice(systems[index], index, occ, patch)
 
 
 def evaluate(model: FLT, params: Any, world: fl.FlowLeniaConfig, system: fl.System, mean_frames: np.ndarray,
