@@ -142,7 +142,8 @@ def test_pattern_descriptors_on_hand_made_patterns():
 def test_surprise_search_keeps_the_most_surprising_per_cell(system):
     model = make_model(WORLD, CFG)
     params = init_params(model, jax.random.PRNGKey(0))
-    search = SurpriseSearch(model, WORLD, batch_size=4, bins=(3, 3), max_displacement=0.5, max_spread=0.5)
+    search = SurpriseSearch(model, WORLD, batch_size=4, bins=(3, 3), max_displacement=0.5, min_spread=0.0,
+                            max_spread=0.5)
     repertoire, history = search.run(params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1,
                                      progress=False)
     assert history["surprise"].shape == (12,) and history["descriptors"].shape == (12, 2)

@@ -146,7 +146,8 @@ class SurpriseSearch:
     """MAP-Elites (``qdnb.qd.repertoire``) over initial states ``(patch_a, patch_p)``
     of the FLT's system; fitness = surprise, the FLT's final-frame MSE on ``A``;
     descriptors = ``pattern_descriptors`` on a ``bins`` grid over
-    ``[0, max_displacement] x [0, max_spread]`` (grid-side units).  Offspring are
+    ``[0, max_displacement] x [min_spread, max_spread]`` (grid-side units;
+    descriptors outside are clipped to the border cells).  Offspring are
     Gaussian mutations (``sigma``) of uniformly drawn elites, clipped to ``[0, 1]``."""
 
     model: FLT
@@ -154,8 +155,17 @@ class SurpriseSearch:
     batch_size: int = 32
     sigma: float = 0.1
     bins: tuple[int, int] = (8, 8)
-    max_displacement: float = 0.25
+    max_displacement: float = 0.125
+    min_spread: float = 0.05
     max_spread: float = 0.25
+
+    @property
+    def low(self) -> tuple[float, float]:
+        return (0.0, self.min_spread)
+
+    @property
+    def high(self) -> tuple[float, float]:
+        return (self.max_displacement, self.max_spread)
 
     def evaluate(self, params: Any, system: fl.System, genotypes: Any, key: jax.Array):
         """Surprise, descriptors and final frames (truth, FLT) of a batch of genotypes."""
@@ -183,14 +193,14 @@ class SurpriseSearch:
         and mass drift."""
         if iterations < 0:
             raise ValueError(f"iterations must be non-negative, got {iterations}")
-        centroids = grid_centroids(self.bins, (0.0, 0.0), (self.max_displacement, self.max_spread))
+        centroids = grid_centroids(self.bins, self.low, self.high)
         k_init, k_eval, key = jax.random.split(key, 3)
         genotypes = self.random_genotypes(k_init)
         low, high = self.world.h_range
 
         def insert(repertoire, genotypes, key):
             surprise, desc, _, _, drift = self.evaluate(params, system, genotypes, key)
-            clipped = jnp.clip(desc, 0.0, jnp.array([self.max_displacement, self.max_spread]))
+            clipped = jnp.clip(desc, jnp.array(self.low), jnp.array(self.high))
             repertoire, _ = rep_lib.insert(repertoire, genotypes, surprise, clipped)
             return repertoire, {"surprise": surprise, "descriptors": desc, "drift": drift}
 
