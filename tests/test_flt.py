@@ -14,7 +14,6 @@ from qdnb.lenia import flow_lenia as fl
 from qdnb.lenia.experiment import (
     SurpriseSearch,
     evaluate,
-    mass_drift,
     pattern_descriptors,
     pick_system,
     torus_centre,
@@ -122,7 +121,7 @@ def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
 
 def test_mass_drift_on_a_hand_made_episode():
     A = jnp.ones((1, 3, 4, 4, 1)).at[0, 1].multiply(1.1).at[0, 2].multiply(0.8)
-    assert float(mass_drift(A)[0]) == pytest.approx(0.2, rel=1e-5)
+    assert float(fl.mass_drift(A)[0]) == pytest.approx(0.2, rel=1e-5)
 
 
 def test_pattern_descriptors_on_hand_made_patterns():

@@ -32,12 +32,6 @@ from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.variation import gaussian_mutation
 
 
-def mass_drift(A: jax.Array) -> jax.Array:
-    """Largest relative change of total mass along each episode, ``A`` ``(..., T + 1, H, W, C)``."""
-    mass = jnp.sum(A, axis=(-3, -2, -1))
-    return jnp.max(jnp.abs(mass / mass[..., :1] - 1.0), axis=-1)
-
-
 def occupancy(A: jax.Array, threshold: float = 0.01) -> jax.Array:
     """Fraction of cells holding more than ``threshold`` matter, ``A`` ``(..., H, W, C)``."""
     return jnp.mean(jnp.sum(A, axis=-1) > threshold, axis=(-2, -1))
@@ -88,7 +82,7 @@ def evaluate(model: FLT, params: Any, world: fl.FlowLeniaConfig, system: fl.Syst
         n = min(batch, episodes - start)
         truth = fl.frames(fl.simulate_system(system, jax.random.fold_in(key, i), world, batch))[:n]
         pred = unroll(model, params, truth[:, 0])
-        drifts.append(np.asarray(mass_drift(truth[..., :1])))
+        drifts.append(np.asarray(fl.mass_drift(truth[..., :1])))
         later = truth[:, 1:]
         parts["flt"].append(frame_errors(pred, later))
         parts["flt_teacher_forced"].append(frame_errors(model.apply(params, truth[:, :-1]), later))
@@ -176,7 +170,7 @@ class SurpriseSearch:
         pred = unroll(self.model, params, truth[:, 0])
         surprise = frame_errors(pred[:, -1], truth[:, -1])["A"]
         desc = jax.vmap(pattern_descriptors)(truth[:, 0, ..., :1], truth[:, -1, ..., :1])
-        return surprise, desc, truth[:, -1], pred[:, -1], mass_drift(truth[..., :1])
+        return surprise, desc, truth[:, -1], pred[:, -1], fl.mass_drift(truth[..., :1])
 
     def random_genotypes(self, key: jax.Array) -> dict[str, jax.Array]:
         """Initial states as in training: uniform matter and parameters on the patch."""

@@ -454,6 +454,12 @@ def simulate_batch(key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> tuple[Sy
     return systems, episodes
 
 
+def mass_drift(A: jax.Array) -> jax.Array:
+    """Largest relative change of total mass along each episode, ``A`` ``(..., T + 1, H, W, C)``."""
+    mass = jnp.sum(A, axis=(-3, -2, -1))
+    return jnp.max(jnp.abs(mass / mass[..., :1] - 1.0), axis=-1)
+
+
 @partial(jax.jit, static_argnames=("cfg", "batch"))
 def simulate_system(system: System, key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> State:
     """``batch`` episodes of one system, each from its own random initial state

@@ -269,8 +269,7 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
         k_sim, k_drop = jax.random.split(key)
         episodes = fl.frames(fl.simulate_system(system, k_sim, world, cfg.batch_size))
         params, opt_state, loss = step(params, opt_state, episodes, k_drop if cfg.dropout > 0 else None)
-        mass = jnp.sum(episodes[..., :1], axis=(-3, -2, -1))  # (batch, T + 1)
-        drift = jnp.max(jnp.abs(mass / mass[:, :1] - 1.0))
+        drift = jnp.max(fl.mass_drift(episodes[..., :1]))
         return params, opt_state, frame_sum + jnp.sum(episodes, axis=0), loss, drift
 
     frame_sum = jnp.zeros((world.steps + 1, world.height, world.width, model.channels))
