@@ -252,7 +252,7 @@ class FlowLeniaChapterConfig:
     """Chapter 5: Flow Lenia (Table 5.1), the FLT (Section 5.3.1) and the surprise search.
 
     ``world`` is the simulator (grid, kernels, Table 5.1 ranges; below ``paper``
-    the grid, the initial patch and the kernel radius ``R`` shrink together);
+    the grid, the initial patch and the kernel radii shrink together);
     ``flt`` the model and its training.  ``system_candidates`` systems are drawn
     for ``pick_system`` (``system_probes`` episodes each); ``eval_episodes``
     held-out episodes score the FLT and the baselines; the surprise search runs
@@ -288,10 +288,10 @@ class FlowLeniaChapterConfig:
 
 
 def lenia_world(size: int, kernels: int = 10) -> FlowLeniaConfig:
-    """A ``size x size`` world with the patch (40 cells at 128) and the largest kernel
-    radius (R <= 25 at 128) scaled with the grid."""
+    """A ``size x size`` world with the patch (40 cells at 128) and the kernel radii
+    (``(R + 15) r`` cells at 128) scaled with the grid: ``radius_scale = size / 128``."""
     return FlowLeniaConfig(height=size, width=size, kernels=kernels, patch_size=max(2, round(40 * size / 128)),
-                           R_range=(2.0, 25.0 * size / 128))
+                           radius_scale=size / 128)
 
 
 _CONFIGS: dict[str, dict[str, object]] = {

@@ -1,35 +1,45 @@
-"""Flow Lenia with parameters embedded in the grid (Sections 5.2 and 5.3), in pure JAX.
+"""Flow Lenia with parameters embedded in the grid (Sections 5.2 and 5.3), in pure JAX,
+following the rules of Plantec et al.'s reference code (``erwanplantec/FlowLenia``,
+``flowlenia_params.py``), which the thesis says it uses.
 
 One step from activations ``A`` (``(H, W, C)``, ``C = 1``) and the parameter map
 ``P`` (``(H, W, |K|)``, the kernel weights ``h`` of every cell):
 
-1. Lenia's potentials ``K_k * A`` by FFT on the torus, with kernels of concentric
-   Gaussian rings (``kernel_fields``) normalised to sum to one on the grid.
-2. The affinity of Section 5.3, ``U(p) = sum_k P_k(p) G_k(K_k * A)(p)``, with the
-   growth functions of Eq. 5.1 (``growth``).
+1. Lenia's potentials ``K_k * A`` by FFT (circular, as in the reference, whatever
+   the border), with kernels of concentric rings (``kernel_fields``): radius
+   ``(R + 15) r``, rings ``b exp(-(D - a)^2 / w)`` of ``D = |x| / radius``, a soft
+   edge ``sigmoid(-10 (D - 1))``, normalised to sum to one on the grid.
+2. The parameter-embedded affinity of Section 5.3,
+   ``U(p) = sum_k P_k(p) G_k(K_k * A)(p)``, with the growth functions of Eq. 5.1.
 3. The flow ``F = (1 - alpha) grad U - alpha grad A_Sigma``,
-   ``alpha = clip((A_Sigma / theta_A)^n, 0, 1)``, ``n = 2``, ``theta_A = 1``;
-   gradients by periodic, unnormalised Sobel filters (``flow``).
+   ``alpha = clip((A_Sigma / theta_A)^n, 0, 1)``, ``n = 2``, ``theta_A = 2``;
+   gradients by unnormalised Sobel filters (zero padding at walls, periodic on a
+   torus); then ``F`` itself is clipped per axis to ``[-(reach - s), reach - s]``
+   (``flow``).
 4. Reintegration tracking (Moroz 2020; Plantec et al. 2023): the matter of every
    cell ``q`` moves to a uniform square of half-side ``s`` centred on
-   ``q' = q + clip(dt F(q))`` and each cell receives the part of the square that
-   covers it (``reintegrate``).  Mass is conserved exactly, up to float rounding
-   (a relative drift of about 1e-8 per step in float32).
+   ``q' = q + clip(dt F(q))``; at walls ``q'`` is kept at least ``s`` inside the grid
+   so that no matter leaves it.  Each cell receives the part of the square that
+   covers it (``reintegrate``).  Mass is conserved exactly, up to float rounding.
 5. ``P`` moves with matter: each cell takes the parameter vector of one of the
-   cells that send it matter, drawn with probability proportional to
-   ``exp(matter received from it)`` (softmax sampling), and ``P = 0`` where no
-   matter (less than ``mass_epsilon``) arrives.
+   cells that send it matter, drawn with probability proportional to the matter
+   received from it (a categorical over the log of the parcels, by Gumbel-max),
+   and ``P = 0`` where no matter (less than ``mass_epsilon``) arrives.  With the
+   default ``mix = "stoch"`` the draw uses one fixed key (``mix_seed``) at every
+   step, as the reference does, so an episode is a deterministic function of
+   (system, ``A^0``, ``P^0``); ``mix = "stoch_fresh"`` draws with a fresh key every
+   step (the key passed to ``step``).
 
-Displacement bound.  ``dt F`` is clipped per axis to ``[-D, D]`` with
-``D = reach - s`` (``reach = 5``, ``s = 0.65``: ``D = 4.35``, as in Plantec et al.'s
-code).  The matter of ``q`` covers ``[q' - s, q' + s]`` per axis, and the unit cell
-of ``p`` is ``[p - 1/2, p + 1/2]``: they overlap only when ``|p - q'| < s + 1/2``,
-so ``|p - q| < D + s + 1/2 = reach + 1/2``: every receiving cell lies within
-``reach`` cells of the sender per axis, a ``(2 reach + 1)^2`` neighbourhood.
+Displacement bound.  Since ``|F| <= D = reach - s`` per axis and ``dt <= 1``, matter
+moves at most ``dt D`` per axis and step (``dt = 0.2``, ``reach = 5``, ``s = 0.65``:
+0.87 cells).  The matter of ``q`` covers ``[q' - s, q' + s]`` per axis and the unit
+cell of ``p`` is ``[p - 1/2, p + 1/2]``: they overlap only when
+``|p - q'| < s + 1/2``, so every receiving cell lies within ``reach`` cells of its
+sender per axis, the ``(2 reach + 1)^2`` neighbourhood of the reference.
 
 Two implementations of step 4 agree to float rounding (the same pairs, the same
 weights, the same random draws): ``reintegrate_reference`` gathers the whole
-``(2 reach + 1)^2`` neighbourhood of every cell, as in Plantec et al.'s code;
+``(2 reach + 1)^2`` neighbourhood of every cell, as the reference code does;
 ``reintegrate`` uses that the overlap factorises per axis and that a square of
 side ``2s`` covers at most ``floor(2s) + 2`` cells per axis (3 for ``s = 0.65``),
 so each cell sends its matter to 9 cells by a scatter-add, instead of every cell
@@ -37,15 +47,27 @@ checking 121 possible senders.  On GPU, XLA's float scatter-add may sum in a
 varying order (set ``XLA_FLAGS=--xla_gpu_deterministic_ops=true`` for bitwise
 repeatable runs there); on CPU runs are bitwise repeatable.
 
-Departures from Plantec et al.'s code, following the thesis's text and Table 5.1:
-the kernel radius is ``r R`` with ``R`` in ``[2, 25]`` (their code uses ``R + 15``)
-with a hard edge at ``|x| = r R`` (theirs is a sigmoid); the grid is a torus;
-``alpha`` uses ``theta_A = 1`` (their code divides by 2 or by ``C``); only ``dt F``
-is clipped (their parameter-embedded variant also clips ``F`` itself to
-``reach - s``, which caps displacements at ``dt (reach - s) = 0.87`` cells); and the
-parameter vector is drawn with a fresh key every step with probabilities
-``exp(received matter)`` among the senders, as Section 5.3 writes it (their code
-draws proportionally to the received matter, with a fixed key).
+The initial state (Section 5.3.1) is a ``patch_size`` square of uniform matter in
+the centre of an empty grid; ``P^0`` is one uniform ``h`` vector for the whole
+patch (``p0 = "patch"``, the reference's parameter-embedding example) or an
+independent vector per cell (``p0 = "cell"``); 0 elsewhere.
+
+Remaining departures from the reference code, and why:
+
+- the parameter ranges are Table 5.1's as printed: ``sigma`` in ``[0.001, 0.2]`` and
+  ``b`` in ``[0, 1]`` (the reference draws ``sigma`` up to 0.18 and ``b`` from 0.001);
+- a cell that receives no matter gets ``P = 0`` ("parameter vectors ... move along
+  with matter", and ``P`` is null outside matter at ``t = 0``); in the reference such a
+  cell takes the vector of the cell 5 rows and columns away (the categorical over
+  all-``-inf`` logits picks its first offset), which streaks parameters across
+  empty space;
+- at walls the target is kept inside each axis's own size (the reference clips both
+  axes to the first one's, the same on square grids);
+- kernels are computed in log space (the same values; rings far from every cell
+  no longer underflow to 0 / 0) on torus distances (the reference's ``fftshift`` of
+  a centred grid: the same on even grids);
+- below ``paper`` scale the kernel radius is multiplied by ``radius_scale`` (the grid
+  side over 128) so that kernels shrink with the grid and the patch.
 """
 
 from __future__ import annotations
@@ -60,15 +82,22 @@ import numpy as np
 from flax import struct
 
 RANGE_FIELDS = ("R_range", "r_range", "h_range", "a_range", "b_range", "w_range", "mu_range", "sigma_range")
+MIX_RULES = ("stoch", "stoch_fresh")
+P0_RULES = ("patch", "cell")
+BORDERS = ("wall", "torus")
 
 
 @dataclass(frozen=True)
 class FlowLeniaConfig:
     """A Flow Lenia world and the parameter space of its random systems (Table 5.1).
 
-    ``reach`` is the neighbourhood radius of reintegration tracking; ``dt F`` is
-    clipped per axis to ``reach - s`` (see the module docstring).  ``mass_epsilon``:
-    a cell receiving less matter than this gets ``P = 0``.
+    ``reach`` is the neighbourhood radius of reintegration tracking; ``F`` and ``dt F``
+    are clipped per axis to ``reach - s`` (see the module docstring).  ``mix``: how
+    ``P`` follows matter (``"stoch"``, a fixed key ``mix_seed``; ``"stoch_fresh"``, a
+    fresh key every step); ``p0``: one ``h`` vector for the initial patch
+    (``"patch"``) or one per cell (``"cell"``); ``border``: ``"wall"`` or ``"torus"``.
+    Kernel radii are ``radius_scale (R + radius_offset) r``.  ``mass_epsilon``: a cell
+    receiving less matter than this gets ``P = 0``.
     """
 
     height: int = 128
@@ -81,8 +110,14 @@ class FlowLeniaConfig:
     dt: float = 0.2
     s: float = 0.65
     n: float = 2.0
-    theta_A: float = 1.0
+    theta_A: float = 2.0
     reach: int = 5
+    mix: str = "stoch"
+    mix_seed: int = 42
+    p0: str = "patch"
+    border: str = "wall"
+    radius_offset: float = 15.0
+    radius_scale: float = 1.0
     mass_epsilon: float = 1e-12
     R_range: tuple[float, float] = (2.0, 25.0)
     r_range: tuple[float, float] = (0.2, 1.0)
@@ -104,13 +139,19 @@ class FlowLeniaConfig:
             raise ValueError(f"only single-channel Flow Lenia is implemented (channels=1), got {self.channels}")
         if self.patch_size > min(self.height, self.width):
             raise ValueError(f"patch_size {self.patch_size} is larger than the {self.height}x{self.width} grid")
-        for name in ("dt", "s", "n", "theta_A"):
+        for name, valid in (("mix", MIX_RULES), ("p0", P0_RULES), ("border", BORDERS)):
+            if getattr(self, name) not in valid:
+                raise ValueError(f"unknown {name} {getattr(self, name)!r}; valid: {', '.join(valid)}")
+        for name in ("dt", "s", "n", "theta_A", "radius_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
-        if self.mass_epsilon < 0:
-            raise ValueError(f"mass_epsilon must be non-negative, got {self.mass_epsilon!r}")
+        if not self.dt <= 1:
+            raise ValueError(f"dt must be at most 1 (matter moves at most dt (reach - s) per step), got {self.dt!r}")
+        if self.radius_offset < 0 or self.mass_epsilon < 0:
+            raise ValueError(f"radius_offset and mass_epsilon must be non-negative, got {self.radius_offset!r} "
+                             f"and {self.mass_epsilon!r}")
         if self.reach < self.s:
-            raise ValueError(f"reach ({self.reach}) must be at least s ({self.s}): the displacement bound "
+            raise ValueError(f"reach ({self.reach}) must be at least s ({self.s}): the flow bound "
                              f"reach - s would be negative")
         if 2 * self.reach + 1 > min(self.height, self.width):
             raise ValueError(f"the reintegration neighbourhood (2 * reach + 1 = {2 * self.reach + 1} cells) "
@@ -124,14 +165,33 @@ class FlowLeniaConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
     @property
-    def max_displacement(self) -> float:
-        """``D = reach - s``: the bound on ``|dt F|`` per axis."""
+    def flow_bound(self) -> float:
+        """``D = reach - s``: the bound on ``|F|`` and on ``|dt F|`` per axis."""
         return self.reach - self.s
+
+    @property
+    def max_displacement(self) -> float:
+        """``dt D``: the most matter moves per axis in one step."""
+        return self.dt * self.flow_bound
 
     @property
     def slots(self) -> int:
         """Cells per axis a square of side ``2s`` can cover: ``floor(2s) + 2``."""
         return math.floor(2 * self.s) + 2
+
+    def describe(self) -> dict[str, str]:
+        """The world's rules as used, in words (``summary.json``'s ``world``)."""
+        mixing = {"stoch": f"categorical, probability proportional to the incoming matter, fixed key {self.mix_seed}",
+                  "stoch_fresh": "categorical, probability proportional to the incoming matter, fresh key every step"}
+        return {"mixing": mixing[self.mix],
+                "p0": {"patch": "one uniform h vector for the whole patch",
+                       "cell": "an independent uniform h vector per cell"}[self.p0],
+                "flow_bound": f"F and dt F clipped per axis to reach - s = {self.flow_bound:g}: "
+                              f"at most {self.max_displacement:.3g} cells per step",
+                "kernels": f"radius {self.radius_scale:g} (R + {self.radius_offset:g}) r, rings b exp(-(D - a)^2 / w), "
+                           f"edge sigmoid(-10 (D - 1))",
+                "alpha": f"clip((A / {self.theta_A:g})^{self.n:g}, 0, 1)",
+                "border": self.border}
 
 
 @struct.dataclass
@@ -172,21 +232,21 @@ def torus_distances(height: int, width: int) -> jax.Array:
 
 
 def kernel_fields(R: jax.Array, r: jax.Array, a: jax.Array, b: jax.Array, w: jax.Array,
-                  height: int, width: int) -> jax.Array:
-    """Kernels of concentric Gaussian bumps (Section 5.2), centred on cell ``(0, 0)``.
+                  height: int, width: int, offset: float = 15.0, scale: float = 1.0) -> jax.Array:
+    """Kernels of concentric rings (Section 5.2, as Plantec et al.'s code builds them),
+    centred on cell ``(0, 0)``.
 
-    ``K_k(x) = sum_i b_ki exp(-(|x| / (r_k R) - a_ki)^2 / (2 w_ki^2))`` for
-    ``|x| <= r_k R`` (torus distances) and 0 beyond, divided by its sum over the
-    grid.  Computed in log space, so that kernels whose rings are all far from
-    the centre (``a`` near 1, ``w`` small) still normalise to one instead of
-    underflowing to 0 / 0.  Returns ``(H, W, |K|)``.
+    With ``D = |x| / (scale (R + offset) r_k)`` (torus distances),
+    ``K_k(x) = sigmoid(-10 (D - 1)) sum_i b_ki exp(-(D - a_ki)^2 / w_ki)``, divided by its
+    sum over the grid.  Computed in log space, so that kernels whose rings are all
+    far from every cell (``a`` near 1, ``w`` small, a radius under a cell) still
+    normalise to one instead of underflowing to 0 / 0.  Returns ``(H, W, |K|)``.
     """
-    radius = r * R  # (K,)
+    radius = scale * (R + offset) * r  # (K,)
     d = torus_distances(height, width)[..., None] / radius  # (H, W, K)
     log_b = jnp.log(jnp.maximum(b, jnp.finfo(jnp.float32).tiny))
-    log_rings = log_b - (d[..., None] - a) ** 2 / (2 * w**2)  # (H, W, K, rings)
-    log_k = jax.nn.logsumexp(log_rings, axis=-1)
-    log_k = jnp.where(d <= 1.0, log_k, -jnp.inf)  # the centre cell is always inside
+    log_rings = log_b - (d[..., None] - a) ** 2 / w  # (H, W, K, rings)
+    log_k = jax.nn.log_sigmoid(-10.0 * (d - 1.0)) + jax.nn.logsumexp(log_rings, axis=-1)
     return jax.nn.softmax(log_k, axis=(0, 1))
 
 
@@ -210,32 +270,43 @@ def sample_system(key: jax.Array, cfg: FlowLeniaConfig) -> System:
     a = uniform(ka, (k, cfg.rings), cfg.a_range)
     b = uniform(kb, (k, cfg.rings), cfg.b_range)
     w = uniform(kw, (k, cfg.rings), cfg.w_range)
-    fields = kernel_fields(R, r, a, b, w, cfg.height, cfg.width)
+    fields = kernel_fields(R, r, a, b, w, cfg.height, cfg.width, cfg.radius_offset, cfg.radius_scale)
     return System(R=R, r=r, a=a, b=b, w=w, mu=uniform(kmu, (k,), cfg.mu_range),
                   sigma=uniform(ksig, (k,), cfg.sigma_range),
                   kernels_fft=jnp.fft.rfft2(fields, axes=(0, 1)))
 
 
-def initial_state(key: jax.Array, cfg: FlowLeniaConfig) -> State:
-    """A ``patch_size``-square patch of uniform matter in the centre of an empty grid
-    (Section 5.3.1), with ``P`` uniform in ``h_range`` on the patch and 0 elsewhere."""
+def initial_patches(key: jax.Array, cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
+    """A random initial patch (Section 5.3.1): matter uniform in ``[0, 1)``,
+    ``(p, p, C)``, and parameters uniform in ``h_range`` by the ``p0`` rule: one vector
+    for the whole patch, ``(|K|,)`` (``"patch"``), or one per cell, ``(p, p, |K|)``
+    (``"cell"``)."""
     ka, kp = jax.random.split(key)
     p = cfg.patch_size
-    patch_a = jax.random.uniform(ka, (p, p, cfg.channels))
-    patch_p = jax.random.uniform(kp, (p, p, cfg.kernels), minval=cfg.h_range[0], maxval=cfg.h_range[1])
-    return place_patch(patch_a, patch_p, cfg)
+    shape = (cfg.kernels,) if cfg.p0 == "patch" else (p, p, cfg.kernels)
+    return (jax.random.uniform(ka, (p, p, cfg.channels)),
+            jax.random.uniform(kp, shape, minval=cfg.h_range[0], maxval=cfg.h_range[1]))
+
+
+def initial_state(key: jax.Array, cfg: FlowLeniaConfig) -> State:
+    """A ``patch_size``-square patch of uniform matter in the centre of an empty grid,
+    with ``P`` uniform in ``h_range`` on the patch by the ``p0`` rule and 0 elsewhere
+    (``initial_patches``)."""
+    return place_patch(*initial_patches(key, cfg), cfg)
 
 
 def place_patch(patch_a: jax.Array, patch_p: jax.Array, cfg: FlowLeniaConfig) -> State:
     """The state with matter ``patch_a`` ``(p, p, C)`` and parameters ``patch_p``
-    ``(p, p, |K|)`` in the centre of an empty grid (``p = patch_size``)."""
+    (``(p, p, |K|)``, or ``(|K|,)`` for one vector on the whole patch) in the centre of
+    an empty grid (``p = patch_size``)."""
     p = cfg.patch_size
-    if patch_a.shape != (p, p, cfg.channels) or patch_p.shape != (p, p, cfg.kernels):
+    if patch_a.shape != (p, p, cfg.channels) or patch_p.shape not in ((p, p, cfg.kernels), (cfg.kernels,)):
         raise ValueError(f"patches of shapes {patch_a.shape} and {patch_p.shape} do not match "
-                         f"({p}, {p}, {cfg.channels}) and ({p}, {p}, {cfg.kernels})")
+                         f"({p}, {p}, {cfg.channels}) and ({p}, {p}, {cfg.kernels}) or ({cfg.kernels},)")
     top, left = (cfg.height - p) // 2, (cfg.width - p) // 2
     A = jnp.zeros((cfg.height, cfg.width, cfg.channels)).at[top:top + p, left:left + p].set(patch_a)
-    P = jnp.zeros((cfg.height, cfg.width, cfg.kernels)).at[top:top + p, left:left + p].set(patch_p)
+    P = jnp.zeros((cfg.height, cfg.width, cfg.kernels)).at[top:top + p, left:left + p].set(
+        jnp.broadcast_to(patch_p, (p, p, cfg.kernels)))
     return State(A=A, P=P)
 
 
@@ -246,7 +317,8 @@ def frames(states: State) -> jax.Array:
 
 
 def potentials(system: System, A: jax.Array) -> jax.Array:
-    """``K_k * A`` for every kernel, by FFT on the torus: ``(H, W, |K|)``."""
+    """``K_k * A`` for every kernel, by FFT: circular, at walls too (as in the reference
+    code, whose walls stop matter, not kernels): ``(H, W, |K|)``."""
     height, width = A.shape[:2]
     fa = jnp.fft.rfft2(A[..., 0])
     return jnp.fft.irfft2(fa[..., None] * system.kernels_fft, s=(height, width), axes=(0, 1))
@@ -259,34 +331,59 @@ def affinity(system: System, state: State) -> jax.Array:
     return jnp.sum(state.P * g, axis=-1, keepdims=True)
 
 
-def sobel(x: jax.Array) -> jax.Array:
-    """Periodic Sobel gradient of ``x`` ``(H, W, ...)``: ``(H, W, ..., 2)``, the
-    derivative along rows (axis 0) then along columns (axis 1).
+def shift(z: jax.Array, by: int, axis: int, wrap: bool) -> jax.Array:
+    """``z`` moved by ``by`` cells along ``axis``: periodic (``wrap``, ``jnp.roll``) or
+    filled with zeros from outside the grid (walls)."""
+    if wrap:
+        return jnp.roll(z, by, axis)
+    size = z.shape[axis]
+    pad = [(0, 0)] * z.ndim
+    pad[axis] = (max(by, 0), max(-by, 0))
+    return jax.lax.slice_in_dim(jnp.pad(z, pad), max(-by, 0), max(-by, 0) + size, axis=axis)
+
+
+def sobel(x: jax.Array, wrap: bool = True) -> jax.Array:
+    """Sobel gradient of ``x`` ``(H, W, ...)``: ``(H, W, ..., 2)``, the derivative along
+    rows (axis 0) then along columns (axis 1); periodic (``wrap``) or with zeros
+    outside the grid (walls, the reference's ``convolve2d(..., mode="same")``).
 
     Unnormalised filters ``[1, 2, 1] x [1, 0, -1]`` as in Flow Lenia's code: on a
     linear field they give 8 times the slope.
     """
     def smooth(z, axis):
-        return jnp.roll(z, 1, axis) + 2.0 * z + jnp.roll(z, -1, axis)
+        return shift(z, 1, axis, wrap) + 2.0 * z + shift(z, -1, axis, wrap)
 
     def diff(z, axis):
-        return jnp.roll(z, -1, axis) - jnp.roll(z, 1, axis)
+        return shift(z, -1, axis, wrap) - shift(z, 1, axis, wrap)
 
     return jnp.stack([smooth(diff(x, 0), 1), smooth(diff(x, 1), 0)], axis=-1)
 
 
 def flow(U: jax.Array, A: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
     """``F = (1 - alpha) grad U - alpha grad A_Sigma`` with
-    ``alpha = clip((A_Sigma / theta_A)^n, 0, 1)`` (Section 5.2): ``(H, W, C, 2)``."""
+    ``alpha = clip((A_Sigma / theta_A)^n, 0, 1)`` (Section 5.2), clipped per axis to
+    ``[-D, D]``, ``D = reach - s`` (the reference's flow bound): ``(H, W, C, 2)``."""
+    wrap = cfg.border == "torus"
     a_sum = jnp.sum(A, axis=-1, keepdims=True)  # (H, W, 1)
     alpha = jnp.clip((a_sum / cfg.theta_A) ** cfg.n, 0.0, 1.0)[..., None]
-    return (1.0 - alpha) * sobel(U) - alpha * sobel(a_sum)
+    F = (1.0 - alpha) * sobel(U, wrap) - alpha * sobel(a_sum, wrap)
+    return jnp.clip(F, -cfg.flow_bound, cfg.flow_bound)
 
 
 def displacement(F: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
-    """``dt F`` clipped per axis to ``[-D, D]``, ``D = reach - s``."""
-    bound = cfg.max_displacement
-    return jnp.clip(cfg.dt * F, -bound, bound)
+    """``dt F`` clipped per axis to ``[-D, D]``, ``D = reach - s``, ``F`` ``(H, W, C, 2)``.
+    At walls the target ``q + dt F(q)`` is then kept in ``[s - 1/2, size - 1/2 - s]``
+    per axis (cell ``i`` spans ``[i - 1/2, i + 1/2]``), so that the whole square of
+    matter stays inside the grid."""
+    bound = cfg.flow_bound
+    disp = jnp.clip(cfg.dt * F, -bound, bound)
+    if cfg.border == "torus":
+        return disp
+    height, width = F.shape[:2]
+    pos = jnp.stack(jnp.meshgrid(jnp.arange(height, dtype=F.dtype), jnp.arange(width, dtype=F.dtype),
+                                 indexing="ij"), axis=-1)[:, :, None, :]  # (H, W, 1, 2)
+    top = jnp.array([height, width], F.dtype) - 0.5 - cfg.s
+    return jnp.clip(pos + disp, cfg.s - 0.5, top) - pos
 
 
 # ----- reintegration tracking -----
@@ -335,13 +432,13 @@ def _noise(key: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
 
 def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
                 cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
-    """Reintegration tracking with softmax sampling of ``P`` (Sections 5.2 and 5.3).
+    """Reintegration tracking with sampling of ``P`` (Sections 5.2 and 5.3).
 
     ``A^{t+dt}(p) = sum_q A(q) I(q, p)`` with ``I(q, p)`` the fraction of the square
     of half-side ``s`` centred on ``q + disp(q)`` inside cell ``p``; the new
     ``P(p)`` is ``P(q)`` for a sender ``q`` drawn with probability proportional to
-    ``exp(A(q) I(q, p))`` (Gumbel-max), and 0 where less than ``mass_epsilon``
-    arrives.  ``A`` ``(H, W, 1)``, ``P`` ``(H, W, |K|)``, ``disp`` ``(H, W, 1, 2)``.
+    the parcel ``A(q) I(q, p)`` (Gumbel-max on its log, noise from ``key``), and 0
+    where less than ``mass_epsilon`` arrives.  ``A`` ``(H, W, 1)``, ``P`` ``(H, W, |K|)``, ``disp`` ``(H, W, 1, 2)``.
 
     Each sender covers ``slots x slots`` cells starting at ``first_cell`` per axis;
     its parcels are scatter-added to them (9 per cell instead of 121 gathers).
@@ -360,7 +457,7 @@ def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
     new_a = jnp.zeros(n, A.dtype).at[target].add(parcels)
 
     sent = parcels > 0
-    score = jnp.where(sent, parcels + _noise(key, cfg).reshape(-1), -jnp.inf)
+    score = jnp.where(sent, jnp.log(jnp.where(sent, parcels, 1.0)) + _noise(key, cfg).reshape(-1), -jnp.inf)
     best = jnp.full(n, -jnp.inf, score.dtype).at[target].max(score)
     pair = jnp.arange(score.shape[0], dtype=jnp.int32)
     winner = jnp.full(n, -1, jnp.int32).at[target].max(jnp.where(sent & (score == best[target]), pair, -1))
@@ -405,7 +502,8 @@ def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.
         share_y = jnp.where(in_window, pick(weight_y, slot[0]), 0.0)
         parcel = from_sender(a) * share_y * pick(weight_x, slot[1])
         g = pick(noise, slot[0] * k + slot[1])
-        score = jnp.where((parcel > 0) & in_window, parcel + g, -jnp.inf)
+        sent = (parcel > 0) & in_window
+        score = jnp.where(sent, jnp.log(jnp.where(sent, parcel, 1.0)) + g, -jnp.inf)
         better = score > best
         best_p = jnp.where(better[..., None], from_sender(P), best_p)
         return (total + parcel, jnp.where(better, score, best), best_p), None
@@ -418,10 +516,18 @@ def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.
 
 # ----- simulation -----
 
+def mixing_key(key: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
+    """The key of a step's parameter draw: the world's fixed key (``mix = "stoch"``,
+    so ``key`` is unused and episodes are deterministic) or ``key`` itself
+    (``"stoch_fresh"``)."""
+    return jax.random.PRNGKey(cfg.mix_seed) if cfg.mix == "stoch" else key
+
+
 def step(system: System, state: State, key: jax.Array, cfg: FlowLeniaConfig) -> State:
-    """One Flow Lenia step: affinity, flow, displacement, reintegration."""
+    """One Flow Lenia step: affinity, flow, displacement, reintegration (``key``
+    matters only with ``mix = "stoch_fresh"``)."""
     F = flow(affinity(system, state), state.A, cfg)
-    A, P = reintegrate(state.A, state.P, displacement(F, cfg), key, cfg)
+    A, P = reintegrate(state.A, state.P, displacement(F, cfg), mixing_key(key, cfg), cfg)
     return State(A=A, P=P)
 
 
@@ -460,6 +566,14 @@ def mass_drift(A: jax.Array) -> jax.Array:
     return jnp.max(jnp.abs(mass / mass[..., :1] - 1.0), axis=-1)
 
 
+@partial(jax.jit, static_argnames=("cfg",))
+def rollout_batch(system: System, states: State, key: jax.Array, cfg: FlowLeniaConfig) -> State:
+    """Episodes of one system from a batch of initial states (``A`` ``(B, H, W, C)``),
+    one key each split from ``key``: ``A`` ``(B, T + 1, H, W, C)``, ``P`` likewise."""
+    keys = jax.random.split(key, states.A.shape[0])
+    return jax.vmap(lambda st, k: rollout(system, st, k, cfg))(states, keys)
+
+
 @partial(jax.jit, static_argnames=("cfg", "batch"))
 def simulate_system(system: System, key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> State:
     """``batch`` episodes of one system, each from its own random initial state
@@ -468,4 +582,4 @@ def simulate_system(system: System, key: jax.Array, cfg: FlowLeniaConfig, batch:
         raise ValueError(f"batch must be a positive integer, got {batch}")
     k_init, k_run = jax.random.split(key)
     states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
-    return jax.vmap(lambda st, k: rollout(system, st, k, cfg))(states, jax.random.split(k_run, batch))
+    return rollout_batch(system, states, k_run, cfg)
