@@ -14,14 +14,16 @@ from qdnb.lenia import flow_lenia as fl
 from qdnb.lenia.experiment import (
     SurpriseSearch,
     evaluate,
+    SystemCriteria,
+    centre_of_mass,
     pattern_descriptors,
     pick_system,
-    torus_centre,
+    world_statistics,
 )
 from qdnb.lenia.flt import FLT, FLTConfig, init_params, loss_fn, make_model, make_train_step, train, unroll
 from qdnb.qdt.train import make_optimizer
 
-WORLD = fl.FlowLeniaConfig(height=16, width=16, kernels=2, patch_size=5, steps=6, R_range=(2.0, 4.0))
+WORLD = fl.FlowLeniaConfig(height=16, width=16, kernels=2, patch_size=5, steps=6, radius_scale=16 / 128)
 CFG = FLTConfig(embed_dim=16, num_layers=2, num_heads=2, features=(4, 8), batch_size=2, train_steps=3)
 
 
@@ -79,6 +81,9 @@ def test_loss_is_eq_5_3_up_to_a_constant(model_params, episodes):
     eq53 = jnp.mean(per_step)  # mean over t (and episodes) of the squared norms
     cells = 16 * 16 * (1 + WORLD.kernels)
     assert float(loss_fn(model, params, episodes)) == pytest.approx(float(eq53) / cells, rel=1e-5)
+    # the per-modality ablation: each modality's mean squared error, summed
+    both = jnp.mean((a - pred[..., :1]) ** 2) + jnp.mean((p - pred[..., 1:]) ** 2)
+    assert float(loss_fn(model, params, episodes, per_modality=True)) == pytest.approx(float(both), rel=1e-5)
 
 
 def test_one_training_step_lowers_the_loss_on_a_fixed_batch(model_params, episodes):
@@ -102,6 +107,11 @@ def test_training_is_deterministic_and_tracks_the_mean_frame(system):
     assert float(a.mean_frames[0, ..., 0].sum()) == pytest.approx(25 * 0.5, rel=0.3)
     assert float(a.mean_frames[0, 0, 0, 0]) == 0.0
     assert a.max_drift < 1e-5
+    # a time budget stops after the first step past it; the mean frame is over the episodes seen
+    short = train(model, CFG, WORLD, system, jax.random.PRNGKey(5), progress=False, max_seconds=0.0)
+    assert short.losses.shape == (1,) and short.episodes_seen == CFG.batch_size
+    assert short.losses[0] == a.losses[0]
+    assert float(short.mean_frames[0, ..., 0].sum()) == pytest.approx(25 * 0.5, rel=0.3)
 
 
 def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
@@ -127,15 +137,17 @@ def test_mass_drift_on_a_hand_made_episode():
 def test_pattern_descriptors_on_hand_made_patterns():
     h = w = 16
     blob = jnp.zeros((h, w, 1)).at[4, 4, 0].set(1.0)
-    np.testing.assert_allclose(np.asarray(torus_centre(blob)), [4.0, 4.0], atol=1e-4)
-    moved = jnp.zeros((h, w, 1)).at[4, 7, 0].set(1.0)  # 3 cells to the right
-    displacement, spread = np.asarray(pattern_descriptors(blob, moved))
-    assert displacement == pytest.approx(3 / 16, abs=1e-4) and spread == pytest.approx(0.0, abs=1e-4)
-    wrapped = jnp.zeros((h, w, 1)).at[4, 14, 0].set(1.0)  # across the edge: 6 cells to the left
-    assert float(pattern_descriptors(blob, wrapped)[0]) == pytest.approx(6 / 16, abs=1e-4)
-    pair = jnp.zeros((h, w, 1)).at[4, 2, 0].set(1.0).at[4, 6, 0].set(1.0)  # two cells, 2 either side of column 4
-    displacement, spread = np.asarray(pattern_descriptors(blob, pair))
-    assert displacement == pytest.approx(0.0, abs=1e-4) and spread == pytest.approx(2 / 16, abs=1e-4)
+    for torus in (False, True):
+        np.testing.assert_allclose(np.asarray(centre_of_mass(blob, torus)), [4.0, 4.0], atol=1e-4)
+        moved = jnp.zeros((h, w, 1)).at[4, 7, 0].set(1.0)  # 3 cells to the right
+        displacement, spread = np.asarray(pattern_descriptors(blob, moved, torus))
+        assert displacement == pytest.approx(3 / 16, abs=1e-4) and spread == pytest.approx(0.0, abs=1e-4)
+        pair = jnp.zeros((h, w, 1)).at[4, 2, 0].set(1.0).at[4, 6, 0].set(1.0)  # two cells, 2 either side of column 4
+        displacement, spread = np.asarray(pattern_descriptors(blob, pair, torus))
+        assert displacement == pytest.approx(0.0, abs=1e-4) and spread == pytest.approx(2 / 16, abs=1e-4)
+    far = jnp.zeros((h, w, 1)).at[4, 14, 0].set(1.0)
+    assert float(pattern_descriptors(blob, far, torus=True)[0]) == pytest.approx(6 / 16, abs=1e-4)  # across the edge
+    assert float(pattern_descriptors(blob, far, torus=False)[0]) == pytest.approx(10 / 16, abs=1e-4)  # walls: no wrap
 
 
 def test_surprise_search_keeps_the_most_surprising_per_cell(system):
@@ -160,11 +172,48 @@ def test_surprise_search_keeps_the_most_surprising_per_cell(system):
     np.testing.assert_array_equal(history["surprise"], history2["surprise"])
 
 
-def test_pick_system_keeps_the_first_localised_system():
-    choice = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2, max_growth=1e9)
+def test_world_statistics_on_hand_made_episodes():
+    """Two probes of 3 frames on a 2x2 grid: occupancy, diversity across probes and
+    the change of the last step, each against a hand computation."""
+    still = np.array([[1.0, 0.0], [0.0, 0.0]])
+    A = np.zeros((2, 3, 2, 2, 1), np.float32)
+    A[0, :, ..., 0] = still  # probe 0 never moves
+    A[1, 0, ..., 0] = still
+    A[1, 1, ..., 0] = [[0.0, 1.0], [0.0, 0.0]]
+    A[1, 2, ..., 0] = [[0.0, 0.0], [1.0, 0.0]]  # probe 1 ends elsewhere, having moved in its last step
+    stats = world_statistics(jnp.asarray(A), window=1)
+    energy = 2 / 8  # mean of (A^T)^2 over probes and cells
+    assert stats["occupancy"] == pytest.approx(0.25)
+    assert stats["diversity"] == pytest.approx(np.mean(np.var(A[:, -1, ..., 0], axis=0)) / energy)  # (2 x 0.25) / 4
+    assert stats["diversity"] == pytest.approx(0.5)
+    assert stats["change"] == pytest.approx((2 / 8) / energy)  # probe 1's last step moved all its mass: 2 cells of 1
+    same = world_statistics(jnp.asarray(np.repeat(A[:1], 2, axis=0)), window=2)
+    assert same["diversity"] == 0.0 and same["change"] == 0.0  # identical probes, nothing moves
+
+
+def test_pick_system_keeps_the_first_system_meeting_every_criterion():
+    lax = SystemCriteria(max_growth=1e9, min_diversity=0.0, max_change=1e9)
+    choice = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2, criteria=lax)
     assert choice.index == 0  # everything qualifies: the first one
-    strict = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2, max_growth=0.0)
-    assert strict.index == int(np.argmin(strict.occupancy))  # nothing qualifies: the most localised
+    assert set(choice.statistics) == {"occupancy", "diversity", "change", "replay", "sensitivity"}
+    assert np.all(choice.statistics["replay"] == 0.0)  # deterministic mixing: replays are identical
+    assert all(v.shape == (3,) for v in choice.statistics.values())
+    settled = choice.statistics["change"]
+    # only "settled" can fail: the first system settled below a threshold between the candidates' values
+    threshold = float(np.sort(settled)[1])
+    only = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2,
+                       criteria=SystemCriteria(max_growth=1e9, min_diversity=0.0, max_change=threshold))
+    assert only.index == int(np.flatnonzero(settled <= threshold)[0])
+    strict = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2,
+                         criteria=SystemCriteria(max_growth=1e-9, min_diversity=1.0, max_change=1e-12))
+    # nothing qualifies: among those meeting the most criteria, the most settled
+    count = sum(v.astype(int) for v in strict.passed.values())
+    best = np.flatnonzero(count == count.max())
+    assert strict.index == int(best[np.argmin(strict.statistics["change"][best])])
+    with pytest.raises(ValueError):
+        SystemCriteria(min_diversity=2.0)
+    with pytest.raises(ValueError):
+        pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=1)
 
 
 def test_config_errors():
@@ -184,7 +233,8 @@ def test_chapter_config_errors():
     from qdnb.scale import FlowLeniaChapterConfig, config, lenia_world
 
     small = config("ch5_flow_lenia", "small")
-    assert small.world.patch_size == 10 and small.world.R_range == (2.0, 6.25)  # 40 and 25 at 128, scaled to 32
+    # the patch (40 at 128) and the kernel radii scale with the grid; Table 5.1's ranges stay as printed
+    assert small.world.patch_size == 10 and small.world.radius_scale == 0.25 and small.world.R_range == (2.0, 25.0)
     assert config("ch5_flow_lenia", "paper").world == fl.FlowLeniaConfig()  # the thesis's world
     with pytest.raises(ValueError, match="at least 64"):
         dataclasses.replace(small, eval_episodes=32)

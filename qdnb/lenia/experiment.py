@@ -3,8 +3,9 @@ baselines, and the surprise search of Section 5.3.2.
 
 - ``pick_system``: the thesis trains on one Flow Lenia system, varying only the
   initial matter and parameter map (Section 5.3.1, footnote 2), and does not say
-  which.  Systems are drawn from Table 5.1 in order and the first whose matter
-  stays localised (a creature, not a soup) is kept.  The rule looks at the
+  which.  Systems are drawn from Table 5.1 in order and the first worth
+  predicting is kept (``SystemCriteria``: its matter stays localised, its ending
+  depends on the initial state, its pattern settles).  The rule looks at the
   simulations only, never at a predictor's error.
 - ``evaluate``: held-out episodes from fresh initial states, the FLT unrolled
   from ``x_0`` alone, and the persistence (every frame is ``x_0``) and mean-frame
@@ -37,33 +38,108 @@ def occupancy(A: jax.Array, threshold: float = 0.01) -> jax.Array:
     return jnp.mean(jnp.sum(A, axis=-1) > threshold, axis=(-2, -1))
 
 
+@dataclass(frozen=True)
+class SystemCriteria:
+    """What makes a system worth predicting, measured on probe episodes from
+    different random initial states (``world_statistics``):
+
+    - **localised**: the final frames hold matter on at most ``max_growth`` times the
+      area of the initial patch (a creature, not matter spread over the grid);
+    - **diverse**: at least ``min_diversity`` of the final frames' energy varies
+      across initial states (the ending depends on ``x_0``; the mean frame cannot
+      explain it);
+    - **settled**: over the last ``window`` steps the frame changes, per step, by at
+      most ``max_change`` of its energy (a stable pattern, not a "boiling" blob).
+    """
+
+    max_growth: float = 4.0
+    min_diversity: float = 0.25
+    max_change: float = 0.1
+    window: int = 5
+
+    def __post_init__(self):
+        if not (self.max_growth > 0 and 0 <= self.min_diversity <= 1 and self.max_change > 0 and self.window >= 1):
+            raise ValueError(f"invalid system criteria {self}: max_growth and max_change must be positive, "
+                             f"min_diversity in [0, 1], window at least 1")
+
+
+def world_statistics(A: jax.Array, window: int = 5) -> dict[str, float]:
+    """Statistics of probe episodes ``A`` ``(probes, T + 1, H, W, C)`` of one system:
+    ``occupancy`` (mean final occupancy), ``diversity`` (the mean over cells of the
+    variance of ``A^T`` across episodes, over the mean of ``(A^T)^2``) and ``change``
+    (the mean squared change of one step over the last ``window`` steps, over the
+    mean of ``(A^T)^2``)."""
+    A = jnp.sum(A, axis=-1)
+    final = A[:, -1]
+    energy = jnp.maximum(jnp.mean(final**2), 1e-12)
+    step = A[:, -window:] - A[:, -window - 1:-1]
+    return {"occupancy": float(jnp.mean(occupancy(final[..., None]))),
+            "diversity": float(jnp.mean(jnp.var(final, axis=0)) / energy),
+            "change": float(jnp.mean(step**2) / energy)}
+
+
 @dataclass
 class SystemChoice:
     system: fl.System
     index: int  # which candidate was kept (0 = the first drawn)
-    occupancy: np.ndarray  # per candidate: mean final occupancy over the probe episodes
+    statistics: dict[str, np.ndarray]  # per candidate: probe_statistics
+    passed: dict[str, np.ndarray]  # per candidate: "localised", "diverse", "settled"
     patch_occupancy: float  # the initial patch's share of the grid
 
 
-def pick_system(key: jax.Array, world: fl.FlowLeniaConfig, candidates: int = 16, probes: int = 4,
-                max_growth: float = 4.0) -> SystemChoice:
+def probe_statistics(system: fl.System, world: fl.FlowLeniaConfig, key: jax.Array, probes: int = 8,
+                     window: int = 5, perturbation: float = 1e-3) -> dict[str, float]:
+    """``world_statistics`` of ``probes`` episodes of ``system`` from random initial
+    states, and two more, as mean squared changes of the final frames over the
+    mean of ``(A^T)^2``: ``replay``, when the same initial states are simulated
+    again with other keys (0 when episodes are deterministic), and
+    ``sensitivity``, when every ``A^0`` is perturbed by uniform noise of amplitude
+    ``perturbation`` on the matter (near 0: the ending is a smooth function of
+    ``x_0``; near twice the diversity: as different as another initial state's)."""
+    if probes < 2:
+        raise ValueError(f"probes must be at least 2 (diversity is a variance across them), got {probes}")
+    k_sim, k_noise, k_replay = jax.random.split(key, 3)
+    episodes = fl.simulate_system(system, k_sim, world, probes)
+    row = world_statistics(episodes.A, window)
+    x0 = jax.tree.map(lambda x: x[:, 0], episodes)
+    final = episodes.A[:, -1]
+    energy = jnp.maximum(jnp.mean(final**2), 1e-12)
+    replayed = fl.rollout_batch(system, x0, k_replay, world)
+    row["replay"] = float(jnp.mean((replayed.A[:, -1] - final) ** 2) / energy)
+    noise = perturbation * jax.random.uniform(k_noise, x0.A.shape) * (x0.A > 0)
+    nudged = fl.rollout_batch(system, x0.replace(A=x0.A + noise), k_replay, world)
+    row["sensitivity"] = float(jnp.mean((nudged.A[:, -1] - final) ** 2) / energy)
+    return row
+
+
+def pick_system(key: jax.Array, world: fl.FlowLeniaConfig, candidates: int = 16, probes: int = 8,
+                criteria: SystemCriteria = SystemCriteria()) -> SystemChoice:
     """The first of ``candidates`` random systems (Table 5.1) whose ``probes``
-    episodes end, on average, with matter on at most ``max_growth`` times the
-    area of the initial patch: a localised creature, not matter spread over the
-    grid.  If none qualifies, the most localised one."""
-    if candidates < 1 or probes < 1:
-        raise ValueError(f"candidates and probes must be positive, got {candidates} and {probes}")
-    keys = jax.random.split(key, candidates)
+    episodes meet every one of ``criteria``; if none does, the one meeting the most,
+    the most settled among those.  The rule looks at simulations only, never at a
+    predictor's error.  ``statistics`` holds every candidate's
+    ``probe_statistics``; ``replay`` and ``sensitivity`` are for the record, not
+    criteria."""
+    if candidates < 1:
+        raise ValueError(f"candidates must be positive, got {candidates}")
     patch = world.patch_size**2 / (world.height * world.width)
-    systems, occ = [], []
-    for k in keys:
-        k_sys, k_sim = jax.random.split(k)
+    systems, rows = [], []
+    for k in jax.random.split(key, candidates):
+        k_sys, k_probe = jax.random.split(k)
         systems.append(fl.sample_system(k_sys, world))
-        occ.append(float(jnp.mean(occupancy(fl.simulate_system(systems[-1], k_sim, world, probes).A[:, -1]))))
-    occ = np.asarray(occ)
-    ok = np.flatnonzero(occ <= max_growth * patch)
-    index = int(ok[0]) if ok.size else int(np.argmin(occ))
-    return SystemChoice(systems[index], index, occ, patch)
+        rows.append(probe_statistics(systems[-1], world, k_probe, probes, criteria.window))
+    stats = {name: np.array([r[name] for r in rows]) for name in rows[0]}
+    passed = {"localised": stats["occupancy"] <= criteria.max_growth * patch,
+              "diverse": stats["diversity"] >= criteria.min_diversity,
+              "settled": stats["change"] <= criteria.max_change}
+    count = sum(v.astype(int) for v in passed.values())
+    ok = np.flatnonzero(count == len(passed))
+    if ok.size:
+        index = int(ok[0])
+    else:
+        best = np.flatnonzero(count == count.max())
+        index = int(best[np.argmin(stats["change"][best])])
+    return SystemChoice(systems[index], index, stats, passed, patch)
 
 
 def evaluate(model: FLT, params: Any, world: fl.FlowLeniaConfig, system: fl.System, mean_frames: np.ndarray,
@@ -99,38 +175,46 @@ def evaluate(model: FLT, params: Any, world: fl.FlowLeniaConfig, system: fl.Syst
 
 # ----- the surprise search (Section 5.3.2) -----
 
-def torus_centre(A: jax.Array) -> jax.Array:
-    """Centre of mass of ``A`` ``(H, W, C)`` on the torus (circular means per axis), in cells."""
+def centre_of_mass(A: jax.Array, torus: bool = False) -> jax.Array:
+    """Centre of mass of ``A`` ``(H, W, C)`` in cells: the mass-weighted mean position,
+    or on a torus the circular mean per axis."""
     mass = jnp.sum(A, axis=-1)
     total = jnp.maximum(jnp.sum(mass), 1e-12)
     centre = []
     for axis, size in ((0, A.shape[0]), (1, A.shape[1])):
-        angle = 2 * jnp.pi * jnp.arange(size) / size
         profile = jnp.sum(mass, axis=1 - axis) / total
-        mean = jnp.arctan2(jnp.sum(profile * jnp.sin(angle)), jnp.sum(profile * jnp.cos(angle)))
-        centre.append(jnp.mod(mean, 2 * jnp.pi) * size / (2 * jnp.pi))
+        if torus:
+            angle = 2 * jnp.pi * jnp.arange(size) / size
+            mean = jnp.arctan2(jnp.sum(profile * jnp.sin(angle)), jnp.sum(profile * jnp.cos(angle)))
+            centre.append(jnp.mod(mean, 2 * jnp.pi) * size / (2 * jnp.pi))
+        else:
+            centre.append(jnp.sum(profile * jnp.arange(size)))
     return jnp.stack(centre)
 
 
-def torus_offsets(point: jax.Array, height: int, width: int) -> jax.Array:
-    """Shortest signed offsets from ``point`` to every cell on the torus, ``(H, W, 2)``."""
-    rows = jnp.arange(height)[:, None] - point[0]
-    cols = jnp.arange(width)[None, :] - point[1]
-    wrap = lambda d, size: (d + size / 2) % size - size / 2
-    return jnp.stack(jnp.broadcast_arrays(wrap(rows, height), wrap(cols, width)), axis=-1)
+def signed(d: jax.Array, size: int, torus: bool) -> jax.Array:
+    """A signed offset ``d`` along an axis of ``size`` cells: itself, or on a torus the
+    shortest one, in ``[-size / 2, size / 2)``."""
+    return (d + size / 2) % size - size / 2 if torus else d
 
 
-def pattern_descriptors(A0: jax.Array, AT: jax.Array) -> jax.Array:
+def offsets(point: jax.Array, height: int, width: int, torus: bool = False) -> jax.Array:
+    """Signed offsets from ``point`` to every cell (the shortest ones on a torus), ``(H, W, 2)``."""
+    rows = signed(jnp.arange(height)[:, None] - point[0], height, torus)
+    cols = signed(jnp.arange(width)[None, :] - point[1], width, torus)
+    return jnp.stack(jnp.broadcast_arrays(rows, cols), axis=-1)
+
+
+def pattern_descriptors(A0: jax.Array, AT: jax.Array, torus: bool = False) -> jax.Array:
     """Two simple descriptors of the final pattern, in units of the grid side:
     the displacement of the centre of mass between ``A0`` and ``AT`` and the
     spatial spread of ``AT`` (mass-weighted root-mean-square distance to its
-    centre of mass), both on the torus.  ``(2,)``."""
+    centre of mass), on a walled grid or a torus.  ``(2,)``."""
     h, w = AT.shape[:2]
-    size = jnp.array([h, w], jnp.float32)
-    c0, cT = torus_centre(A0), torus_centre(AT)
-    displacement = jnp.linalg.norm((cT - c0 + size / 2) % size - size / 2)
+    c0, cT = centre_of_mass(A0, torus), centre_of_mass(AT, torus)
+    displacement = jnp.hypot(signed(cT[0] - c0[0], h, torus), signed(cT[1] - c0[1], w, torus))
     mass = jnp.sum(AT, axis=-1)
-    d2 = jnp.sum(torus_offsets(cT, h, w) ** 2, axis=-1)
+    d2 = jnp.sum(offsets(cT, h, w, torus) ** 2, axis=-1)
     spread = jnp.sqrt(jnp.sum(mass * d2) / jnp.maximum(jnp.sum(mass), 1e-12))
     return jnp.stack([displacement, spread]) / max(h, w)
 
@@ -138,7 +222,7 @@ def pattern_descriptors(A0: jax.Array, AT: jax.Array) -> jax.Array:
 @dataclass(frozen=True)
 class SurpriseSearch:
     """MAP-Elites (``qdnb.qd.repertoire``) over initial states ``(patch_a, patch_p)``
-    of the FLT's system; fitness = surprise, the FLT's final-frame MSE on ``A``;
+    of the FLT's system (``patch_p`` one vector or one per cell, by the world's ``p0``); fitness = surprise, the FLT's final-frame MSE on ``A``;
     descriptors = ``pattern_descriptors`` on a ``bins`` grid over
     ``[0, max_displacement] x [min_spread, max_spread]`` (grid-side units;
     descriptors outside are clipped to the border cells).  Offspring are
@@ -164,21 +248,18 @@ class SurpriseSearch:
     def evaluate(self, params: Any, system: fl.System, genotypes: Any, key: jax.Array):
         """Surprise, descriptors and final frames (truth, FLT) of a batch of genotypes."""
         states = jax.vmap(lambda a, p: fl.place_patch(a, p, self.world))(genotypes["a"], genotypes["p"])
-        keys = jax.random.split(key, genotypes["a"].shape[0])
-        episodes = jax.vmap(lambda st, k: fl.rollout(system, st, k, self.world))(states, keys)
-        truth = fl.frames(episodes)
+        truth = fl.frames(fl.rollout_batch(system, states, key, self.world))
         pred = unroll(self.model, params, truth[:, 0])
         surprise = frame_errors(pred[:, -1], truth[:, -1])["A"]
-        desc = jax.vmap(pattern_descriptors)(truth[:, 0, ..., :1], truth[:, -1, ..., :1])
+        torus = self.world.border == "torus"
+        desc = jax.vmap(lambda a0, aT: pattern_descriptors(a0, aT, torus))(truth[:, 0, ..., :1], truth[:, -1, ..., :1])
         return surprise, desc, truth[:, -1], pred[:, -1], fl.mass_drift(truth[..., :1])
 
     def random_genotypes(self, key: jax.Array) -> dict[str, jax.Array]:
-        """Initial states as in training: uniform matter and parameters on the patch."""
-        p, n = self.world.patch_size, self.batch_size
-        ka, kp = jax.random.split(key)
-        low, high = self.world.h_range
-        return {"a": jax.random.uniform(ka, (n, p, p, self.world.channels)),
-                "p": jax.random.uniform(kp, (n, p, p, self.world.kernels), minval=low, maxval=high)}
+        """Initial states as in training (``flow_lenia.initial_patches``): the matter
+        patch and the parameters by the world's ``p0`` rule."""
+        a, p = jax.vmap(fl.initial_patches, in_axes=(0, None))(jax.random.split(key, self.batch_size), self.world)
+        return {"a": a, "p": p}
 
     def run(self, params: Any, system: fl.System, key: jax.Array, iterations: int, chunk_size: int = 5,
             progress: bool = True) -> tuple[rep_lib.Repertoire, dict[str, np.ndarray]]:

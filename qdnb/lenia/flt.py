@@ -15,12 +15,13 @@ as the next input, keeping the keys and values of the earlier tokens (a cache),
 so each step costs one token; ``unroll(..., cached=False)`` recomputes the
 whole prefix every step and is the reference the cache is tested against.
 
-The encoder has ``len(features)`` stride-2 convolutions (circular padding: the
-grid is a torus), so ``H`` and ``W`` must be multiples of ``2**len(features)``.
+The encoder has ``len(features)`` stride-2 convolutions (zero padding at walls,
+circular on a torus), so ``H`` and ``W`` must be multiples of ``2**len(features)``.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -39,18 +40,20 @@ Cache = tuple[tuple[jax.Array, jax.Array], ...]
 
 
 class FrameEncoder(nn.Module):
-    """``(N, H, W, C)`` frames to ``(N, D)`` tokens: stride-2 convolutions, then a
-    dense layer on the flattened feature map."""
+    """``(N, H, W, C)`` frames to ``(N, D)`` tokens: stride-2 convolutions (``padding``
+    ``"CIRCULAR"`` on a torus, zeros ``"SAME"`` at walls), then a dense layer on the
+    flattened feature map."""
 
     features: tuple[int, ...]
     embed_dim: int
+    padding: str = "SAME"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> tuple[jax.Array, list[jax.Array]]:
         """The tokens and the feature map of every resolution (finest first)."""
         maps = []
         for f in self.features:
-            x = nn.relu(nn.Conv(f, (3, 3), strides=(2, 2), padding="CIRCULAR")(x))
+            x = nn.relu(nn.Conv(f, (3, 3), strides=(2, 2), padding=self.padding)(x))
             maps.append(x)
         return nn.Dense(self.embed_dim)(x.reshape(x.shape[0], -1)), maps
 
@@ -95,6 +98,7 @@ class FLT(nn.Module):
     features: tuple[int, ...] = (16, 32, 64)
     dropout: float = 0.0
     skip: bool = False  # the decoder also sees the input frame's CNN features (U-Net skips)
+    padding: str = "SAME"  # the encoder's: "CIRCULAR" for a torus, "SAME" (zeros) for walls
 
     def setup(self):
         scale = 2 ** len(self.features)
@@ -102,7 +106,7 @@ class FLT(nn.Module):
             raise ValueError(f"the {self.height}x{self.width} grid is not a multiple of 2**len(features) = {scale}")
         if self.embed_dim % self.num_heads:
             raise ValueError(f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}")
-        self.encoder = FrameEncoder(self.features, self.embed_dim)
+        self.encoder = FrameEncoder(self.features, self.embed_dim, self.padding)
         self.decoder = FrameDecoder(self.features, self.height, self.width, self.channels)
         self.embed_timestep = nn.Embed(self.max_steps, self.embed_dim)
         self.embed_ln = nn.LayerNorm()
@@ -146,7 +150,10 @@ class FLT(nn.Module):
 @dataclass(frozen=True)
 class FLTConfig:
     """The model and its training: ``train_steps`` gradient steps, each on a batch
-    of ``batch_size`` episodes simulated on the fly (never the same twice)."""
+    of ``batch_size`` episodes simulated on the fly (never the same twice).
+    ``per_modality``: an ablation of the loss, ``MSE(A) + MSE(P)`` (each modality
+    averaged over its own channels) instead of Eq. 5.3, where ``P``'s ``|K|``
+    channels weigh ``|K|`` times ``A``'s one (``loss_fn``)."""
 
     embed_dim: int = 128
     num_layers: int = 2
@@ -157,6 +164,7 @@ class FLTConfig:
     batch_size: int = 8
     learning_rate: float = 1e-3
     train_steps: int = 1000
+    per_modality: bool = False
 
     def __post_init__(self):
         for name in ("embed_dim", "num_layers", "num_heads", "batch_size", "train_steps"):
@@ -174,30 +182,37 @@ class FLTConfig:
 
 def make_model(world: fl.FlowLeniaConfig, cfg: FLTConfig) -> FLT:
     return FLT(world.height, world.width, world.channels + world.kernels, world.steps, cfg.embed_dim,
-               cfg.num_layers, cfg.num_heads, cfg.features, cfg.dropout, cfg.skip)
+               cfg.num_layers, cfg.num_heads, cfg.features, cfg.dropout, cfg.skip,
+               "CIRCULAR" if world.border == "torus" else "SAME")
 
 
 def init_params(model: FLT, key: jax.Array) -> Any:
     return model.init(key, jnp.zeros((1, 2, model.height, model.width, model.channels)))
 
 
-def loss_fn(model: FLT, params: Any, episodes: jax.Array, key: jax.Array | None = None) -> jax.Array:
+def loss_fn(model: FLT, params: Any, episodes: jax.Array, key: jax.Array | None = None,
+            per_modality: bool = False) -> jax.Array:
     """Eq. 5.3 with teacher forcing: frames ``x_0 .. x_{T-1}`` in, ``x_1 .. x_T``
     predicted, the squared error averaged over episodes, timesteps, cells and
     channels.  Eq. 5.3 sums ``||A_t - Â_t||^2 + ||P_t - P̂_t||^2`` over cells and
     averages over t: this is the same up to the constant factor
-    ``1 / (H W (1 + |K|))``, with the same relative weight of ``A`` and ``P``."""
+    ``1 / (H W (1 + |K|))``, with the same relative weight of ``A`` and ``P``.
+    ``per_modality`` (an ablation): ``MSE(A) + MSE(P)`` instead, each averaged
+    over its own channels, so that ``A`` weighs as much as all of ``P``."""
     rngs = None if key is None else {"dropout": key}
     pred = model.apply(params, episodes[:, :-1], deterministic=key is None, rngs=rngs)
-    return jnp.mean((pred - episodes[:, 1:]) ** 2)
+    err = (pred - episodes[:, 1:]) ** 2
+    if per_modality:
+        return jnp.mean(err[..., :1]) + jnp.mean(err[..., 1:])
+    return jnp.mean(err)
 
 
-def make_train_step(model: FLT, optimizer: optax.GradientTransformation):
+def make_train_step(model: FLT, optimizer: optax.GradientTransformation, per_modality: bool = False):
     """``(params, opt_state, episodes, key) -> (params, opt_state, loss)``, not jitted
     (it is called inside ``train``'s jitted loop and jitted by the tests)."""
 
     def step(params, opt_state, episodes, key):
-        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, episodes, key))(params)
+        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, episodes, key, per_modality))(params)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
@@ -247,11 +262,14 @@ class TrainResult:
 
 
 def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.System, key: jax.Array,
-          progress: bool = True, desc: str = "FLT") -> TrainResult:
+          progress: bool = True, desc: str = "FLT", max_seconds: float | None = None) -> TrainResult:
     """Train the FLT on episodes of ``system``, each batch simulated on the fly from
     fresh random initial states (simulation and gradient step in one jitted
     call).  Also accumulates the mean frame per timestep of the training
-    episodes (the mean-frame baseline).
+    episodes (the mean-frame baseline).  With ``max_seconds``, training stops
+    after the first step that ends past that many seconds (compilation included),
+    or after ``cfg.train_steps``, whichever comes first (``bench/flt_sweep.py``
+    compares settings at an equal wall-clock budget).
 
     The steps run in a Python loop, not a ``lax.scan``: XLA on CPU runs the
     convolutions' gradients about 10x slower inside a loop than as a top-level
@@ -262,7 +280,7 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
     params = init_params(model, k_init)
     optimizer = make_optimizer(cfg.learning_rate)
     opt_state = optimizer.init(params)
-    step = make_train_step(model, optimizer)
+    step = make_train_step(model, optimizer, cfg.per_modality)
 
     @jax.jit
     def one(params, opt_state, frame_sum, key):
@@ -274,6 +292,7 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
 
     frame_sum = jnp.zeros((world.steps + 1, world.height, world.width, model.channels))
     losses, drifts = [], []
+    start = time.perf_counter()
     bar = tqdm(range(cfg.train_steps), desc=desc, disable=not progress, mininterval=1.0)
     for i in bar:
         params, opt_state, frame_sum, loss, drift = one(params, opt_state, frame_sum,
@@ -282,6 +301,9 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
         drifts.append(drift)
         if i % 50 == 49 or i == cfg.train_steps - 1:
             bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-50:]))):.4g}")
-    seen = cfg.train_steps * cfg.batch_size
+        if max_seconds is not None and float(loss) >= 0 and time.perf_counter() - start > max_seconds:
+            break  # float(loss) waits for the step, so the clock counts finished steps
+    bar.close()
+    seen = len(losses) * cfg.batch_size
     return TrainResult(params, np.asarray(jnp.stack(losses)), np.asarray(frame_sum / seen), seen,
                        float(jnp.max(jnp.stack(drifts))))
