@@ -339,8 +339,8 @@ _CONFIGS: dict[str, dict[str, object]] = {
             flt=FLTConfig(embed_dim=16, num_layers=1, num_heads=2, features=(4, 8), batch_size=4, train_steps=20)),
         "small": FlowLeniaChapterConfig(
             num_seeds=1, world=lenia_world(32),
-            flt=FLTConfig(embed_dim=128, num_layers=2, num_heads=4, features=(16, 32, 64), batch_size=8,
-                          learning_rate=1e-3, train_steps=1200)),
+            flt=FLTConfig(embed_dim=128, num_layers=2, num_heads=4, features=(8, 16, 32), batch_size=8,
+                          learning_rate=1e-3, train_steps=800)),  # bench/flt_sweep.py: "narrow-cnn"
         "paper": FlowLeniaChapterConfig(
             num_seeds=1, world=lenia_world(128), eval_episodes=256, search_iterations=200, search_batch=64,
             search_bins=(16, 16),
