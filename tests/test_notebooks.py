@@ -68,3 +68,10 @@ def test_notebook_runs_at_tiny_scale(name):
         assert results["train_loss_final"] > 0.0
         search = results["surprise_search"]
         assert search["evaluations"] > 0 and search["best_surprise"] >= search["median_surprise"] >= 0.0
+        world = results["world"]
+        assert set(world) == {"mixing", "p0", "flow_bound", "kernels", "alpha", "border"}
+        assert "fixed key" in world["mixing"] and world["border"] == "wall"
+        # the default world is deterministic: replays and replayed elites equal the originals
+        assert results["replay_mse_final"] == 0.0 and results["best_predictor_floor_final"] == 0.0
+        assert search["elites_replay_max_gap"] <= 1e-6
+        assert set(results["p0_comparison"]) == {"patch", "cell"}
