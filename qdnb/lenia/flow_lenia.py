@@ -430,6 +430,13 @@ def _noise(key: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
     return jax.random.gumbel(key, (cfg.slots, cfg.slots, cfg.height, cfg.width))
 
 
+def _mixing_score(parcel: jax.Array, sent: jax.Array, gumbel: jax.Array) -> jax.Array:
+    """Gumbel-max scores of the parameter draw: ``log(parcel) + gumbel`` where matter
+    is sent (the largest score wins with probability proportional to the parcel),
+    ``-inf`` elsewhere.  Shared by both reintegrations, so that they draw alike."""
+    return jnp.where(sent, jnp.log(jnp.where(sent, parcel, 1.0)) + gumbel, -jnp.inf)
+
+
 def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
                 cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
     """Reintegration tracking with sampling of ``P`` (Sections 5.2 and 5.3).
@@ -457,7 +464,7 @@ def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
     new_a = jnp.zeros(n, A.dtype).at[target].add(parcels)
 
     sent = parcels > 0
-    score = jnp.where(sent, jnp.log(jnp.where(sent, parcels, 1.0)) + _noise(key, cfg).reshape(-1), -jnp.inf)
+    score = _mixing_score(parcels, sent, _noise(key, cfg).reshape(-1))
     best = jnp.full(n, -jnp.inf, score.dtype).at[target].max(score)
     pair = jnp.arange(score.shape[0], dtype=jnp.int32)
     winner = jnp.full(n, -1, jnp.int32).at[target].max(jnp.where(sent & (score == best[target]), pair, -1))
@@ -503,7 +510,7 @@ def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.
         parcel = from_sender(a) * share_y * pick(weight_x, slot[1])
         g = pick(noise, slot[0] * k + slot[1])
         sent = (parcel > 0) & in_window
-        score = jnp.where(sent, jnp.log(jnp.where(sent, parcel, 1.0)) + g, -jnp.inf)
+        score = _mixing_score(parcel, sent, g)
         better = score > best
         best_p = jnp.where(better[..., None], from_sender(P), best_p)
         return (total + parcel, jnp.where(better, score, best), best_p), None
