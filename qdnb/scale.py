@@ -108,7 +108,12 @@ class QDPGTask:
     iteration each critic in use takes ``num_critic_steps`` TD3 steps and each
     actor ``num_pg_steps`` actor steps; at ``paper`` scale both are Table 3.2's
     gradient-steps ratio times the episode length (4 x 200 on Point-Maze,
-    0.1 x 3000 on the ants).
+    0.1 x 3000 on the ants).  ``learning_rate`` drives the critics and their
+    greedy actors, ``mutation_learning_rate`` the policy-gradient mutations of
+    the population (Table 3.2 gives one rate for both; QDax uses 3e-4 and
+    1e-3).  The state-descriptor archive admits a state whose mean distance to
+    its K nearest neighbours exceeds ``archive_threshold`` (Section 3.6.3) and
+    holds ``archive_size`` of them (FIFO).
     """
 
     num_steps: int
@@ -123,6 +128,8 @@ class QDPGTask:
     num_critic_steps: int
     num_pg_steps: int
     archive_threshold: float
+    mutation_learning_rate: float
+    archive_size: int = 10_000
 
     @property
     def num_iterations(self) -> int:
@@ -131,10 +138,12 @@ class QDPGTask:
 
 POINTMAZE_PAPER = QDPGTask(num_steps=1_000_000, episode_length=200, num_actors=4, bins=5, policy_hidden=(64, 32),
                            critic_hidden=(64, 32), optimizer="sgd", learning_rate=6e-3, buffer_size=1_000_000,
-                           num_critic_steps=800, num_pg_steps=800, archive_threshold=1e-4)
+                           num_critic_steps=800, num_pg_steps=800, archive_threshold=1e-4,
+                           mutation_learning_rate=6e-3)
 ANT_PAPER = QDPGTask(num_steps=100_000_000, episode_length=3000, num_actors=10, bins=7, policy_hidden=(256, 256),
                      critic_hidden=(256, 256), optimizer="sgd", learning_rate=3e-4, buffer_size=500_000,
-                     num_critic_steps=300, num_pg_steps=300, archive_threshold=0.1)
+                     num_critic_steps=300, num_pg_steps=300, archive_threshold=0.1,
+                     mutation_learning_rate=3e-4)
 
 
 @dataclass(frozen=True)
@@ -153,7 +162,6 @@ class QDPGConfig:
     antmaze: QDPGTask
     anttrap: QDPGTask
     ant_methods: tuple[str, ...] = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
-    archive_size: int = 10_000
     archive_k: int = 10
     td3_batch_size: int = 256
     discount: float = 0.99
@@ -173,6 +181,9 @@ class QDPGConfig:
                                  f"({task.num_actors} actors x {task.episode_length} steps)")
             if task.optimizer not in ("adam", "sgd"):
                 raise ValueError(f"{name}: unknown optimizer {task.optimizer!r}; valid: adam, sgd")
+            if task.num_critic_steps % self.policy_delay:
+                raise ValueError(f"{name}: num_critic_steps={task.num_critic_steps} must be a multiple of "
+                                 f"policy_delay={self.policy_delay}")
         unknown = set(self.ant_methods) - set(QDPG_METHODS)
         if unknown:
             raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(QDPG_METHODS)}")
@@ -351,23 +362,24 @@ _CONFIGS: dict[str, dict[str, object]] = {
         "tiny": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"), adaptation_goals=20, adaptation_budget=10,
             pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=8_000, policy_hidden=(16, 16),
-                                          critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3,
+                                          critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
                                           buffer_size=20_000, num_critic_steps=10, num_pg_steps=10),
             antmaze=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
-                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3,
+                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
                                         buffer_size=10_000, num_critic_steps=10, num_pg_steps=10),
             anttrap=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
-                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3,
+                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
                                         buffer_size=10_000, num_critic_steps=10, num_pg_steps=10)),
         "small": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"),
-            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=600_800, optimizer="adam", learning_rate=5e-3,
-                                          buffer_size=600_800, num_critic_steps=100, num_pg_steps=100),
+            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=1_000_000, optimizer="adam", learning_rate=3e-4,
+                                          mutation_learning_rate=1e-3, buffer_size=1_000_000, num_critic_steps=100,
+                                          num_pg_steps=100, archive_threshold=0.1, archive_size=2_000),
             antmaze=dataclasses.replace(ANT_PAPER, num_steps=105_000, episode_length=500, policy_hidden=(64, 64),
-                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=1e-3,
+                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
                                         buffer_size=105_000, num_critic_steps=50, num_pg_steps=50),
             anttrap=dataclasses.replace(ANT_PAPER, num_steps=105_000, episode_length=500, policy_hidden=(64, 64),
-                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=1e-3,
+                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
                                         buffer_size=105_000, num_critic_steps=50, num_pg_steps=50)),
         "paper": QDPGConfig(num_seeds=5, chunk_size=50, pointmaze=POINTMAZE_PAPER, antmaze=ANT_PAPER,
                             anttrap=dataclasses.replace(ANT_PAPER, episode_length=1000)),

@@ -4,14 +4,16 @@ import numpy as np
 import pytest
 
 from qdnb.envs import make_env
-from qdnb.envs.pointmaze import GOAL, WALLS, in_goal, move, segment_hits_walls
+from qdnb.envs.pointmaze import GOAL, WALLS, in_goal, inside_a_wall, move
 from qdnb.envs.rollout import evaluate_policies, rollout
 from qdnb.rl.networks import MLP, init_policies
 
 
 def crosses_a_wall(p, q):
     """Independent check: the straight segment p->q passes through a wall's
-    y-band at an x inside the wall (walls are horizontal)."""
+    y-band at an x inside the wall (walls are horizontal), or ends strictly
+    inside a wall (ending on a face is allowed: that is where a blocked move
+    stops)."""
     for x0, x1, y0, y1 in WALLS:
         for y in (y0, y1):
             if (p[1] - y) * (q[1] - y) < 0:  # strictly on both sides of the band edge
@@ -19,7 +21,7 @@ def crosses_a_wall(p, q):
                 x = p[0] + t * (q[0] - p[0])
                 if x0 <= x <= x1:
                     return True
-        if y0 <= q[1] <= y1 and x0 <= q[0] <= x1:
+        if y0 < q[1] < y1 and x0 < q[0] < x1:
             return True
     return False
 
@@ -46,15 +48,33 @@ def test_pushing_straight_up_into_the_first_wall_stops_below_it():
     p = jnp.array([0.0, -0.55])
     for _ in range(20):
         p = move(p, jnp.array([0.0, 1.0]))
-    assert p[1] < -0.50  # still below the wall y in [-0.50, -0.49]
+    assert float(p[1]) == pytest.approx(-0.50)  # on the wall's lower face (y in [-0.50, -0.49])
     assert float(p[0]) == 0.0
 
 
-def test_blocked_moves_slide_along_the_wall():
-    p = jnp.array([0.0, -0.52])
-    q = move(p, jnp.array([-1.0, 1.0]))
-    np.testing.assert_allclose(q, [-0.1, -0.52], atol=1e-6)
-    assert not bool(segment_hits_walls(p, q))
+def test_blocked_moves_keep_their_horizontal_part_and_stop_on_the_face():
+    """QDax's rule: the move (-0.1, +0.1) from (0, -0.52) crosses the lower
+    wall's lower face; the point keeps x - 0.1 and stops at y = -0.50."""
+    q = move(jnp.array([0.0, -0.52]), jnp.array([-1.0, 1.0]))
+    np.testing.assert_allclose(q, [-0.1, -0.50], atol=1e-6)
+    # from above, onto the upper wall's upper face (y in [0.20, 0.21])
+    q = move(jnp.array([0.0, 0.25]), jnp.array([0.5, -1.0]))
+    np.testing.assert_allclose(q, [0.05, 0.21], atol=1e-6)
+    # on the face, sliding along it is free and pushing into it does nothing
+    q = move(jnp.array([0.0, -0.50]), jnp.array([1.0, 0.0]))
+    np.testing.assert_allclose(q, [0.1, -0.50], atol=1e-6)
+    q = move(jnp.array([0.0, -0.50]), jnp.array([0.0, 1.0]))
+    np.testing.assert_allclose(q, [0.0, -0.50], atol=1e-6)
+
+
+def test_entering_a_wall_sideways_drops_the_horizontal_part():
+    """Beside the upper wall's end (x = 0.5), inside its y-band: moving left
+    would end inside the wall, so only the vertical part is kept."""
+    p = jnp.array([0.55, 0.205])
+    q = move(p, jnp.array([-1.0, 0.0]))
+    np.testing.assert_allclose(q, p, atol=1e-6)
+    assert not bool(inside_a_wall(q))
+    np.testing.assert_allclose(move(jnp.array([0.55, 0.30]), jnp.array([-1.0, 0.0])), [0.45, 0.30], atol=1e-6)
 
 
 def test_the_gap_lets_the_point_through():

@@ -2,6 +2,7 @@
 updates, critic targets, the TD3 baseline and the Chapter 3 configs."""
 
 import dataclasses
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -67,10 +68,11 @@ def maze():
 
 
 def small_qdpg(env, update="alternate", **kw):
+    kw = {"archive_threshold": 1e-4, **kw}
     return QDPG(env=env, network=MLP((8, env.action_size), activation="relu"), batch_size=4, iso_sigma=0.0,
                 line_sigma=0.0, centroids=grid_centroids((5, 5), (-1, -1), (1, 1)), update=update,
                 td3_config=TD3Config(batch_size=16, critic_hidden=(8,), actor_lr=1e-2), num_critic_steps=4,
-                num_pg_steps=3, buffer_size=1000, archive_size=64, archive_threshold=1e-4, **kw)
+                num_pg_steps=3, buffer_size=1000, archive_size=64, **kw)
 
 
 def test_each_actor_is_updated_against_the_critic_of_its_kind(maze):
@@ -190,3 +192,125 @@ def test_configs_and_helpers():
     np.testing.assert_allclose(grid_coverage(d, env, 2), [2 / 4, 1 / 4])  # (0,0) and (0.1,0.1) share a cell
     algos = build_algorithms(config("ch3_qdpg", "tiny"), "pointmaze", env)
     assert set(algos) == {"QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME"}
+
+
+def test_the_target_critic_moves_on_every_critic_step_and_the_target_actor_on_actor_steps(maze):
+    """Table 3.2's target update interval of 1 (as QDax's emitters): after one
+    critic step the target critic has moved by tau toward the new critic, the
+    actor and its target have not (policy delay 2); after the second step the
+    actor and its target move too."""
+    algo = small_qdpg(maze)
+    td3 = algo.td3
+    state, _ = algo.init(jax.random.PRNGKey(0))
+    s0 = state.q_critic
+    batch = state.buffer.sample(jax.random.PRNGKey(1), 16)
+    s1, _ = td3.critic_step(s0, batch, jax.random.PRNGKey(2))
+    tau = td3.config.tau
+    for t0, t1, c1 in zip(*(jax.tree.leaves(x) for x in (s0.critic_target, s1.critic_target, s1.critic))):
+        np.testing.assert_allclose(t1, (1 - tau) * t0 + tau * c1, rtol=1e-5, atol=1e-7)
+    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(s0.critic_target), jax.tree.leaves(s1.critic_target)))
+    # train_critic with 2 steps: two critic steps, then one actor step and one target-actor move.
+    s2, _ = td3.train_critic(s0, state.buffer, jax.random.PRNGKey(3), 2)
+    assert int(s2.steps) == 2
+    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(s0.actor), jax.tree.leaves(s2.actor)))
+    for a0, ta, a2 in zip(*(jax.tree.leaves(x) for x in (s0.actor_target, s2.actor_target, s2.actor))):
+        np.testing.assert_allclose(ta, (1 - tau) * a0 + tau * a2, rtol=1e-5, atol=1e-7)
+    # With a target update interval of 2, the first step leaves the target critic alone.
+    lazy = dataclasses.replace(td3, config=dataclasses.replace(td3.config, target_update_interval=2))
+    s1_lazy, _ = lazy.critic_step(s0, batch, jax.random.PRNGKey(2))
+    for a, b in zip(jax.tree.leaves(s0.critic_target), jax.tree.leaves(s1_lazy.critic_target)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="multiple of policy_delay"):
+        td3.train_critic(s0, state.buffer, jax.random.PRNGKey(3), 3)
+
+
+def test_a_transition_carries_the_descriptor_of_the_state_it_starts_from(maze):
+    """Section 3.6.3 stores (s_t, a_t, r_t, s_{t+1}, psi(s_t)): on Point-Maze
+    psi is the position, so the stored descriptor equals obs, not next_obs, and
+    the archive receives the starting position of the episode."""
+    net = MLP((8, 2))
+    params = jax.vmap(lambda k: net.init(k, jnp.zeros(2)))(jax.random.split(jax.random.PRNGKey(0), 2))
+    ev = evaluate_policies(maze, net.apply, params, jax.random.PRNGKey(1), return_trajectory=True)
+    t = ev.trajectory
+    np.testing.assert_array_equal(t["state_descriptor"], t["obs"])
+    assert not np.allclose(t["state_descriptor"][:, 1:], t["next_obs"][:, 1:])
+    algo = small_qdpg(maze, archive_threshold=-1.0)  # admit everything
+    state, ev0 = algo.init(jax.random.PRNGKey(0))
+    first = np.asarray(ev0.trajectory["obs"][0, 0])
+    np.testing.assert_allclose(state.archive.data[0], first)
+    np.testing.assert_allclose(state.buffer.data["state_descriptor"][0], first)
+    # A hand-made transition: the diversity reward scores psi(s_t) = (0, 1), not s_{t+1}.
+    archive = NoveltyArchive.create(2, 2).replace(data=jnp.array([[0.0, 0.0], [0.0, 3.0]]),
+                                                  num_added=jnp.asarray(2, jnp.int32))
+    batch = {"obs": jnp.array([[0.0, 1.0]]), "next_obs": jnp.array([[0.0, 1.1]]),
+             "state_descriptor": jnp.array([[0.0, 1.0]]), "reward": jnp.zeros(1)}
+    np.testing.assert_allclose(dataclasses.replace(algo, archive_k=1).critic_rewards(archive, batch, "diversity"),
+                               [1.0], rtol=1e-6)
+
+
+def test_novelty_of_every_batch_of_an_iteration_in_one_pass_is_exact():
+    """The critic scores all its batches at once (leading axes, chunked): the
+    same values as brute force, batch by batch."""
+    reference = jax.random.uniform(jax.random.PRNGKey(0), (500, 2))
+    archive = NoveltyArchive.create(600, 2).replace(data=jnp.pad(reference, ((0, 100), (0, 0))),
+                                                    num_added=jnp.asarray(500, jnp.int32))
+    queries = jax.random.uniform(jax.random.PRNGKey(1), (7, 33, 2))
+    got = archive.novelty(queries, 5, chunk=50)  # 231 queries: 5 chunks, the last one padded
+    assert got.shape == (7, 33)
+    for i in range(7):
+        np.testing.assert_allclose(got[i], brute_force_novelty(queries[i], reference, 5), rtol=1e-5)
+
+
+def test_mutations_use_their_own_learning_rate(maze):
+    """QDax's rates: 3e-4 for critics and greedy actors, 1e-3 for mutations."""
+    cfg = config("ch3_qdpg", "small")
+    algo = build_algorithms(cfg, "pointmaze")["QD-PG"]
+    assert algo.td3.config.critic_lr == algo.td3.config.actor_lr == cfg.pointmaze.learning_rate
+    assert algo.td3.config.mutation_lr == cfg.pointmaze.mutation_learning_rate
+    paper = config("ch3_qdpg", "paper").pointmaze
+    assert paper.learning_rate == paper.mutation_learning_rate == 6e-3  # Table 3.2: one rate
+    td3 = small_qdpg(maze).td3
+    fast = dataclasses.replace(td3, config=dataclasses.replace(td3.config, mutation_lr=1.0))
+    state, _ = small_qdpg(maze).init(jax.random.PRNGKey(0))
+    actor = td3.init(jax.random.PRNGKey(4)).actor
+    slow_out = td3.policy_gradient_steps(actor, state.q_critic.critic, state.buffer, jax.random.PRNGKey(5), 1)
+    fast_out = fast.policy_gradient_steps(actor, state.q_critic.critic, state.buffer, jax.random.PRNGKey(5), 1)
+    # Adam's first step moves each weight by about the learning rate
+    step = lambda out: max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(actor)))
+    assert step(fast_out) > 50 * step(slow_out)
+
+
+def test_the_sweep_script_runs_a_tiny_grid_resumes_and_selects(tmp_path):
+    """bench/qdpg_sweep.py on its tiny grid (one variant, both methods, two
+    seeds): per seed steps to the exit (or None), final performance, coverage;
+    a second call skips what is done; the selection follows the stated rule."""
+    import importlib.util
+    import json
+    import sys
+
+    path = Path(__file__).parents[1] / "bench" / "qdpg_sweep.py"
+    spec = importlib.util.spec_from_file_location("qdpg_sweep", path)
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    out = tmp_path / "sweep.json"
+    argv = ["qdpg_sweep.py", "--grid", "tiny", "--only", "base", "--out", str(out)]
+    old = sys.argv
+    try:
+        sys.argv = argv
+        sweep.main()
+        first = json.loads(out.read_text())
+        sweep.main()  # resumes: nothing left to run, same numbers
+        again = json.loads(out.read_text())
+    finally:
+        sys.argv = old
+    runs = first["runs"]["base"]
+    assert set(runs) == {"QD-PG", "D-PG"} and first["budget_steps"] == 4_000
+    for entry in runs.values():
+        assert len(entry["final_performance"]) == 2 and len(entry["steps_to_exit"]) == 2
+        assert all(s is None or 0 < s <= 4_000 for s in entry["steps_to_exit"])
+        assert all(0 < e <= 4_000 for e in entry["env_steps"])
+    assert again["runs"] == first["runs"] and first["selected"] == "base"
+    fake = {"a": {"QD-PG": {"final_performance": [-50.0], "seconds": 100.0}, "D-PG": {"final_performance": [-50.0]}},
+            "b": {"QD-PG": {"final_performance": [-20.0], "seconds": 900.0}, "D-PG": {"final_performance": [-20.0]}},
+            "c": {"QD-PG": {"final_performance": [-10.0], "seconds": 1.0}}}  # D-PG missing: not eligible
+    assert sweep.select(fake, None) == "b" and sweep.select(fake, 500.0) == "a"

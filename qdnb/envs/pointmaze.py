@@ -5,9 +5,12 @@ A point moves in the arena ``[-1, 1]^2``; each action in ``[-1, 1]^2`` is scaled
 top-left corner behind both of them, and following the reward (minus the distance
 to the goal) leads into dead ends below the walls.
 
-Walls are solid: a move whose segment touches a wall is replaced by its
-horizontal part alone, else its vertical part alone, else no move (the point
-slides along walls and never crosses one; `tests/test_pointmaze.py` checks it).
+Walls follow QDax's Point-Maze (``qdax/environments/pointmaze.py``, the task
+the thesis ran): a move whose vertical part crosses a wall's face (at an x
+inside the wall) keeps its horizontal part and stops on that face, so the point
+slides along the wall; then the arena clips it.  One case the reference leaves
+open is closed here: a move that enters a wall through its 0.01-thick end
+(which the reference lets through) drops its horizontal part.  The point never crosses a wall (`tests/test_pointmaze.py` checks both).
 """
 
 from __future__ import annotations
@@ -28,39 +31,46 @@ GOAL = (-0.5, 0.8)
 GOAL_HALF_SIDE = 0.05
 
 
-def segment_hits_box(p: jax.Array, q: jax.Array, box: jax.Array) -> jax.Array:
-    """Whether the segment ``p -> q`` touches the closed box (slab method)."""
-    lo = jnp.stack([box[0], box[2]])
-    hi = jnp.stack([box[1], box[3]])
-    d = q - p
-    still = jnp.abs(d) < 1e-12
-    safe_d = jnp.where(still, 1.0, d)
-    t_a = (lo - p) / safe_d
-    t_b = (hi - p) / safe_d
-    t_enter = jnp.where(still, -jnp.inf, jnp.minimum(t_a, t_b))
-    t_exit = jnp.where(still, jnp.inf, jnp.maximum(t_a, t_b))
-    # An axis without motion must already lie inside the slab.
-    inside_still = jnp.where(still, (p >= lo) & (p <= hi), True)
-    t0 = jnp.maximum(0.0, jnp.max(t_enter))
-    t1 = jnp.minimum(1.0, jnp.min(t_exit))
-    return jnp.all(inside_still) & (t0 <= t1)
+def stop_on_faces(p: jax.Array, q: jax.Array) -> jax.Array:
+    """The end of the move ``p -> q`` once walls stop its vertical part: if the
+    segment crosses a wall's lower face going up (or its upper face going
+    down) at an x within the wall, the end's y is set to that face and its x is
+    kept (QDax's collision rule, for every wall).  A wall that meets the
+    arena's border extends beyond it, as in the reference, so that a move
+    leaving the arena cannot pass round the wall's end before the clip."""
+    y = q[1]
+    for x0, x1, lo, hi in WALLS:
+        x0, x1 = (-jnp.inf if x0 <= -1.0 else x0), (jnp.inf if x1 >= 1.0 else x1)
+        for face, crossing in ((lo, (p[1] <= lo) & (q[1] > lo)), (hi, (p[1] >= hi) & (q[1] < hi))):
+            dy = jnp.where(q[1] == p[1], 1.0, q[1] - p[1])
+            x_at_face = p[0] + (face - p[1]) / dy * (q[0] - p[0])
+            y = jnp.where(crossing & (x_at_face >= x0) & (x_at_face <= x1), face, y)
+    return jnp.stack([q[0], y])
 
 
-def segment_hits_walls(p: jax.Array, q: jax.Array) -> jax.Array:
-    walls = jnp.asarray(WALLS)
-    return jnp.any(jax.vmap(segment_hits_box, in_axes=(None, None, 0))(p, q, walls))
+def inside_a_wall(p: jax.Array) -> jax.Array:
+    """Whether ``p`` lies strictly inside a wall."""
+    return jnp.any(jnp.stack([(p[0] > x0) & (p[0] < x1) & (p[1] > lo) & (p[1] < hi) for x0, x1, lo, hi in WALLS]))
+
+
+def crosses_an_end(p: jax.Array, q: jax.Array) -> jax.Array:
+    """Whether the segment ``p -> q`` enters a wall through its end inside the
+    arena (crossing the line x = end strictly between the wall's faces)."""
+    hits = []
+    for x0, x1, lo, hi in WALLS:
+        for end in [e for e in (x0, x1) if -1.0 < e < 1.0]:
+            dx = jnp.where(q[0] == p[0], 1.0, q[0] - p[0])
+            y_at_end = p[1] + (end - p[0]) / dx * (q[1] - p[1])
+            crossing = ((p[0] <= end) & (q[0] > end)) | ((p[0] >= end) & (q[0] < end))
+            hits.append(crossing & (y_at_end > lo) & (y_at_end < hi))
+    return jnp.any(jnp.stack(hits))
 
 
 def move(p: jax.Array, action: jax.Array, step_size: float = 0.1) -> jax.Array:
-    """One move of the point: scaled action, arena clipping, then walls."""
-    q = jnp.clip(p + step_size * jnp.clip(action, -1.0, 1.0), -1.0, 1.0)
-    q_x = jnp.stack([q[0], p[1]])
-    q_y = jnp.stack([p[0], q[1]])
-    return jnp.where(
-        ~segment_hits_walls(p, q),
-        q,
-        jnp.where(~segment_hits_walls(p, q_x), q_x, jnp.where(~segment_hits_walls(p, q_y), q_y, p)),
-    )
+    """One move of the point: scaled action, walls, then arena clipping."""
+    q = stop_on_faces(p, p + step_size * jnp.clip(action, -1.0, 1.0))
+    q = jnp.where(crosses_an_end(p, q), jnp.stack([p[0], q[1]]), q)
+    return jnp.clip(q, -1.0, 1.0)
 
 
 def in_goal(p: jax.Array) -> jax.Array:

@@ -97,9 +97,21 @@ class NoveltyArchive:
     def size(self) -> jax.Array:
         return jnp.minimum(self.num_added, self.capacity)
 
-    def novelty(self, queries: jax.Array, k: int) -> jax.Array:
-        """Novelty of each query with respect to the archive (Eq. 2.5 / Eq. 3.5)."""
-        return knn_novelty(queries, self.data, k, self.valid)
+    def novelty(self, queries: jax.Array, k: int, chunk: int = 1024) -> jax.Array:
+        """Novelty of each query with respect to the archive (Eq. 2.5 / Eq. 3.5).
+
+        ``queries`` may have any leading axes (QD-PG scores every batch of an
+        iteration at once); more than ``chunk`` queries are scored ``chunk`` at
+        a time, which bounds the distance matrix in memory and changes no value.
+        """
+        lead, dim = queries.shape[:-1], queries.shape[-1]
+        flat = queries.reshape(-1, dim)
+        n = flat.shape[0]
+        if n <= chunk:
+            return knn_novelty(flat, self.data, k, self.valid).reshape(lead)
+        padded = jnp.pad(flat, ((0, (-n) % chunk), (0, 0))).reshape(-1, chunk, dim)
+        scores = jax.lax.map(lambda q: knn_novelty(q, self.data, k, self.valid), padded)
+        return scores.reshape(-1)[:n].reshape(lead)
 
     def add(self, items: jax.Array, threshold: float, k: int, valid: jax.Array | None = None) -> "NoveltyArchive":
         """Insert items one after the other; an item enters when its novelty with

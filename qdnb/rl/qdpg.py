@@ -21,11 +21,18 @@ its state descriptors, filtered by novelty, to the FIFO archive (Section 3.6.3).
 
 The TD3 baseline (``TD3Agent``) trains a single actor on the same buffer rules.
 
-Which state descriptor a transition carries: that of the state its action leads
-to, ``psi(s_{t+1})``, so the novelty reward credits the action with where it
-goes.  Each critic's TD3 target uses the critic's own greedy actor (trained in
-its delayed steps), as in PGA-ME; the actors of the population only read the
-critics.
+Which state descriptor a transition carries: ``psi(s_t)``, that of the state
+the transition starts from, as Section 3.6.3 writes the stored transition
+``(s_t, a_t, r_t, s_{t+1}, psi(s_t))`` (and as QDax's QD-PG scores
+``state_desc``); the archive receives the same ``psi(s_t)``.  Each critic's TD3
+target uses the critic's own greedy actor (one actor step per ``policy_delay``
+critic steps), as in PGA-ME; the target critic moves after every critic step
+(Table 3.2's target update interval of 1).  The actors of the population only
+read the critics; their policy-gradient steps use their own optimiser and rate
+(``TD3Config.mutation_lr``; QDax: 1e-3 against 3e-4 for critics and greedy
+actors).  The novelty rewards of all ``num_critic_steps`` batches of an
+iteration are computed in one pass before the critic steps: the archive does not
+change during them.
 """
 
 from __future__ import annotations

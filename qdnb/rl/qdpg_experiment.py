@@ -56,6 +56,7 @@ def build_algorithms(cfg: QDPGConfig, env_name: str, env: Env | None = None) -> 
     network = MLP(task.policy_hidden + (env.action_size,), activation="relu")
     td3_config = TD3Config(gamma=cfg.discount, tau=cfg.tau, policy_delay=cfg.policy_delay,
                            critic_lr=task.learning_rate, actor_lr=task.learning_rate,
+                           mutation_lr=task.mutation_learning_rate,
                            batch_size=cfg.td3_batch_size, critic_hidden=task.critic_hidden,
                            optimizer=task.optimizer)
     centroids = grid_centroids((task.bins, task.bins), env.descriptor_low, env.descriptor_high)
@@ -67,7 +68,7 @@ def build_algorithms(cfg: QDPGConfig, env_name: str, env: Env | None = None) -> 
             algorithms[method] = QDPG(
                 **shared, update=QDPG_UPDATES[method], td3_config=td3_config,
                 num_critic_steps=task.num_critic_steps, num_pg_steps=task.num_pg_steps,
-                buffer_size=task.buffer_size, archive_size=cfg.archive_size,
+                buffer_size=task.buffer_size, archive_size=task.archive_size,
                 archive_threshold=task.archive_threshold, archive_k=cfg.archive_k)
         elif method == "PGA-ME":
             algorithms[method] = PGAMapElites(
@@ -92,8 +93,10 @@ def final_grid(state: Any) -> dict[str, np.ndarray] | None:
                            "descriptors": rep.descriptors, "centroids": rep.centroids})
 
 
-def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bool = True) -> dict[str, Any]:
-    """Run every method of ``cfg`` on ``env_name`` for ``cfg.num_seeds`` seeds.
+def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bool = True,
+                    methods: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """Run every method of ``cfg`` (or those of ``methods``) on ``env_name`` for
+    ``cfg.num_seeds`` seeds.
 
     Returns ``{"env", "env_name", "methods": {name: {"history", "grid",
     "final_performance", "coverage", "env_steps", "seconds"}}}``; ``history``
@@ -102,6 +105,11 @@ def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bo
     task = cfg.task(env_name)
     env = make_task_env(cfg, env_name)
     algorithms = build_algorithms(cfg, env_name, env)
+    if methods is not None:
+        unknown = set(methods) - set(algorithms)
+        if unknown:
+            raise ValueError(f"methods {sorted(unknown)} are not run on {env_name}; valid: {', '.join(algorithms)}")
+        algorithms = {m: algorithms[m] for m in methods}
     keys = jax.random.split(key, cfg.num_seeds)
     out: dict[str, Any] = {"env": env, "env_name": env_name, "methods": {}}
     for method, algo in algorithms.items():
@@ -146,3 +154,13 @@ def reached_goal(descriptors: np.ndarray) -> np.ndarray:
     """Per seed (leading axis), whether any evaluated Point-Maze episode ended in
     the exit zone."""
     return in_exit_zone(descriptors).reshape(np.shape(descriptors)[0], -1).any(axis=1)
+
+
+def steps_to_exit(result: dict[str, Any]) -> np.ndarray:
+    """Per seed, the environment steps a Point-Maze method had used when one of
+    its evaluated episodes first ended in the exit zone (``nan`` if none did);
+    ``result`` is one method's entry of ``run_environment``."""
+    hit = in_exit_zone(result["history"]["descriptors"])  # seeds x iterations x episodes
+    hit = hit.reshape(hit.shape[0], hit.shape[1], -1).any(axis=2)
+    steps = np.asarray(result["cumulative_steps"], float)
+    return np.where(hit.any(axis=1), steps[np.arange(len(steps)), np.argmax(hit, axis=1)], np.nan)

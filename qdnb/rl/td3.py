@@ -1,9 +1,14 @@
 """TD3 (Section 2.3.5; Fujimoto et al., 2018): twin critics, target policy
-smoothing, delayed actor and target updates.
+smoothing, delayed actor updates.
 
 Pure functions over a ``TD3State`` pytree.  The pieces PGA-ME needs are
-separate: ``critic_step`` trains the shared critic on replay batches and
-``policy_gradient_steps`` improves any actor against it.
+separate: ``train_critic`` trains the shared critic (and its greedy actor) on
+replay batches and ``policy_gradient_steps`` improves any actor against it.
+
+Target networks follow QDax's PGA-ME and QD-PG emitters (the code Chapters 3
+and 4 build on) and Table 3.2's "target update interval 1": the target critic
+moves after every ``target_update_interval``-th critic step, the target actor
+after every actor step (one actor step per ``policy_delay`` critic steps).
 """
 
 from __future__ import annotations
@@ -32,10 +37,15 @@ class TD3Config:
     batch_size: int = 256
     critic_hidden: tuple[int, ...] = (256, 256)
     optimizer: str = "adam"  # or "sgd" (plain stochastic gradient descent, Table 3.2)
+    target_update_interval: int = 1  # critic steps between soft updates of the target critic
+    mutation_lr: float | None = None  # policy-gradient mutations (PGA-ME, QD-PG); None: actor_lr
 
     def __post_init__(self):
         if self.optimizer not in ("adam", "sgd"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}; valid: adam, sgd")
+        if self.policy_delay < 1 or self.target_update_interval < 1:
+            raise ValueError(f"policy_delay and target_update_interval must be >= 1, got "
+                             f"{self.policy_delay} and {self.target_update_interval}")
 
 
 class TwinCritic(nn.Module):
@@ -92,6 +102,11 @@ class TD3:
     def critic_optimizer(self):
         return self._optimizer(self.config.critic_lr)
 
+    @property
+    def mutation_optimizer(self):
+        lr = self.config.mutation_lr
+        return self._optimizer(self.config.actor_lr if lr is None else lr)
+
     def init(self, key: jax.Array) -> TD3State:
         k_a, k_c = jax.random.split(key)
         actor = self.actor.init(k_a, jnp.zeros((self.observation_size,)))
@@ -119,32 +134,34 @@ class TD3:
         return -jnp.mean(q1)
 
     def critic_step(self, state: TD3State, batch: dict, key: jax.Array) -> tuple[TD3State, jax.Array]:
-        """One critic update; the actor and both targets move every
-        ``policy_delay`` steps (soft updates with rate ``tau``)."""
+        """One critic update, then a soft update (rate ``tau``) of the target
+        critic when the step count is a multiple of ``target_update_interval``."""
         cfg = self.config
         y = jax.lax.stop_gradient(self.target(state.critic_target, state.actor_target, batch, key))
         loss, grads = jax.value_and_grad(self.critic_loss)(state.critic, batch, y)
         updates, critic_opt = self.critic_optimizer.update(grads, state.critic_opt)
         critic = optax.apply_updates(state.critic, updates)
+        steps = state.steps + 1
+        move = steps % cfg.target_update_interval == 0
+        target = jax.tree.map(lambda t, p: jnp.where(move, (1 - cfg.tau) * t + cfg.tau * p, t),
+                              state.critic_target, critic)
+        return state.replace(critic=critic, critic_opt=critic_opt, critic_target=target, steps=steps), loss
 
-        def delayed(s: TD3State) -> TD3State:
-            grads = jax.grad(self.actor_loss)(s.actor, critic, batch["obs"])
-            updates, actor_opt = self.actor_optimizer.update(grads, s.actor_opt)
-            actor = optax.apply_updates(s.actor, updates)
-            soft = lambda t, p: (1 - cfg.tau) * t + cfg.tau * p
-            return s.replace(actor=actor, actor_opt=actor_opt,
-                             actor_target=jax.tree.map(soft, s.actor_target, actor),
-                             critic_target=jax.tree.map(soft, s.critic_target, critic))
-
-        state = state.replace(critic=critic, critic_opt=critic_opt, steps=state.steps + 1)
-        state = jax.lax.cond(state.steps % cfg.policy_delay == 0, delayed, lambda s: s, state)
-        return state, loss
+    def actor_step(self, state: TD3State, obs: jax.Array) -> TD3State:
+        """One step of the greedy actor against the current critic, then a soft
+        update of the target actor."""
+        tau = self.config.tau
+        grads = jax.grad(self.actor_loss)(state.actor, state.critic, obs)
+        updates, actor_opt = self.actor_optimizer.update(grads, state.actor_opt)
+        actor = optax.apply_updates(state.actor, updates)
+        target = jax.tree.map(lambda t, p: (1 - tau) * t + tau * p, state.actor_target, actor)
+        return state.replace(actor=actor, actor_opt=actor_opt, actor_target=target)
 
     def policy_gradient_steps(self, actor: Any, critic: Any, buffer, key: jax.Array, num_steps: int) -> Any:
-        """Improve one actor with ``num_steps`` Adam steps (fresh optimiser state),
-        each on its own replay batch, against a fixed critic: the policy-gradient
-        variation of PGA-ME."""
-        opt = self.actor_optimizer
+        """Improve one actor with ``num_steps`` steps of the mutation optimiser
+        (fresh state, rate ``mutation_lr``), each on its own replay batch, against
+        a fixed critic: the policy-gradient variation of PGA-ME and QD-PG."""
+        opt = self.mutation_optimizer
 
         def one(carry, k):
             params, opt_state = carry
@@ -158,17 +175,31 @@ class TD3:
 
     def train_critic(self, state: TD3State, buffer, key: jax.Array, num_steps: int,
                      reward_fn: Callable[[dict], jax.Array] | None = None) -> tuple[TD3State, jax.Array]:
-        """``num_steps`` critic steps (with the delayed actor/target updates) on
-        replay batches; returns the mean critic loss.  ``reward_fn(batch)``, when
-        given, replaces each sampled batch's rewards (QD-PG's fresh novelty
-        rewards, Eq. 3.5)."""
+        """``num_steps`` critic steps on replay batches, with one greedy-actor step
+        after every ``policy_delay`` of them (on the last of their batches);
+        returns the mean critic loss.
 
-        def one(s, k):
-            k_batch, k_noise = jax.random.split(k)
-            batch = buffer.sample(k_batch, self.config.batch_size)
-            if reward_fn is not None:
-                batch = {**batch, "reward": reward_fn(batch)}
-            return self.critic_step(s, batch, k_noise)
+        Every batch is drawn up front (``num_steps`` batches of ``batch_size``);
+        ``reward_fn(batches)``, when given, replaces their rewards in one call
+        (leaves with leading axes ``(num_steps, batch_size)``: QD-PG's fresh
+        novelty rewards, Eq. 3.5, for the whole iteration in one pass).  The
+        delay is a fixed loop structure, not a branch, so that a ``vmap`` over
+        seeds runs the actor step only when it is due.
+        """
+        delay = self.config.policy_delay
+        if num_steps % delay:
+            raise ValueError(f"num_steps={num_steps} must be a multiple of policy_delay={delay}")
+        k_batch, k_noise = jax.random.split(key)
+        batches = buffer.sample(k_batch, num_steps * self.config.batch_size)
+        batches = jax.tree.map(lambda x: x.reshape((num_steps, self.config.batch_size) + x.shape[1:]), batches)
+        if reward_fn is not None:
+            batches = {**batches, "reward": reward_fn(batches)}
+        blocks = jax.tree.map(lambda x: x.reshape((num_steps // delay, delay) + x.shape[1:]),
+                              (batches, jax.random.split(k_noise, num_steps)))
 
-        state, losses = jax.lax.scan(one, state, jax.random.split(key, num_steps))
+        def block(s, inputs):
+            s, losses = jax.lax.scan(lambda s, bk: self.critic_step(s, *bk), s, inputs)
+            return self.actor_step(s, inputs[0]["obs"][-1]), losses
+
+        state, losses = jax.lax.scan(block, state, blocks)
         return state, jnp.mean(losses)
