@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any, Callable
 
 import jax
@@ -16,12 +17,15 @@ def scan_in_chunks(
     chunk_size: int,
     desc: str | None = None,
     progress: bool = True,
+    chunk_seconds: list[float] | None = None,
 ) -> tuple[Any, Any]:
     """Apply ``carry, out = step(carry)`` ``num_steps`` times.
 
     Each chunk of ``chunk_size`` steps is one jitted ``lax.scan`` (compiled once);
     the host only wakes up between chunks to move the progress bar.  Returns the
-    final carry and the per-step outputs stacked along a leading axis.
+    final carry and the per-step outputs stacked along a leading axis.  When
+    ``chunk_seconds`` is a list, the wall time of each chunk (the first one
+    includes compilation) is appended to it.
     """
     if num_steps < 1 or chunk_size < 1:
         raise ValueError(f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}")
@@ -37,8 +41,11 @@ def scan_in_chunks(
         done = 0
         while done < num_steps:
             n = min(chunk_size, num_steps - done)
+            start = time.perf_counter()
             carry, out = run(n, carry)
             jax.block_until_ready(carry)
+            if chunk_seconds is not None:
+                chunk_seconds.append(time.perf_counter() - start)
             outputs.append(out)
             done += n
             bar.update(n)

@@ -370,9 +370,13 @@ _CONFIGS: dict[str, dict[str, object]] = {
             anttrap=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
                                         critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
                                         buffer_size=10_000, num_critic_steps=10, num_pg_steps=10)),
+        # small Point-Maze: Table 3.2's networks, minibatch, K, grid and N; 100 gradient steps per
+        # iteration, Adam at QDax's rates per role, a lasting coarse archive (the base of
+        # bench/qdpg_sweep.py); the largest equal budget for six methods that fits the notebook's
+        # time on 2 cores (bench/qdpg.py's rate x methods).
         "small": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"),
-            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=1_000_000, optimizer="adam", learning_rate=3e-4,
+            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=300_000, optimizer="adam", learning_rate=3e-4,
                                           mutation_learning_rate=1e-3, buffer_size=1_000_000, num_critic_steps=100,
                                           num_pg_steps=100, archive_threshold=0.1, archive_size=2_000),
             antmaze=dataclasses.replace(ANT_PAPER, num_steps=105_000, episode_length=500, policy_hidden=(64, 64),

@@ -315,6 +315,7 @@ def run_seeds(
     progress: bool = True,
     desc: str | None = None,
     keep_evaluations: bool = True,
+    chunk_seconds: list[float] | None = None,
 ):
     """Run one algorithm for several seeds at once (``vmap`` over ``keys``).
 
@@ -322,7 +323,8 @@ def run_seeds(
     evaluated descriptor is tracked on a fixed regular grid of ``track_bins``
     cells over the environment's descriptor bounds (see ``ExplorationTrack``),
     with the smallest distance to ``target``; ``keep_evaluations`` keeps the
-    descriptors and fitnesses of every evaluated solution.  ``env_steps`` counts
+    descriptors and fitnesses of every evaluated solution (``chunk_seconds``: see
+    ``scan_in_chunks``).  ``env_steps`` counts
     the environment steps taken in each iteration.  Returns the final
     states, the tracks (``None`` without ``track_bins``) and a history dict whose
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
@@ -357,7 +359,8 @@ def run_seeds(
 
     carry, first = jax.jit(jax.vmap(init))(keys)
     (states, tracks), history = scan_in_chunks(
-        jax.vmap(step), carry, num_iterations, chunk_size, desc=desc, progress=progress
+        jax.vmap(step), carry, num_iterations, chunk_size, desc=desc, progress=progress,
+        chunk_seconds=chunk_seconds,
     )
     history = jax.tree.map(
         lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history

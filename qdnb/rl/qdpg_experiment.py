@@ -99,7 +99,8 @@ def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bo
     ``cfg.num_seeds`` seeds.
 
     Returns ``{"env", "env_name", "methods": {name: {"history", "grid",
-    "final_performance", "coverage", "env_steps", "seconds"}}}``; ``history``
+    "final_performance", "coverage", "env_steps", "seconds",
+    "steady_seconds_per_iteration"}}}``; ``history``
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``.
     """
     task = cfg.task(env_name)
@@ -113,9 +114,9 @@ def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bo
     keys = jax.random.split(key, cfg.num_seeds)
     out: dict[str, Any] = {"env": env, "env_name": env_name, "methods": {}}
     for method, algo in algorithms.items():
-        start = time.perf_counter()
+        start, chunks = time.perf_counter(), []
         states, _, history = run_seeds(algo, keys, task.num_iterations - 1, cfg.chunk_size,
-                                       progress=progress, desc=f"{env_name} {method}")
+                                       progress=progress, desc=f"{env_name} {method}", chunk_seconds=chunks)
         history = jax.device_get(history)
         seconds = time.perf_counter() - start
         steps = np.cumsum(history["env_steps"], axis=1)
@@ -129,6 +130,9 @@ def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bo
             "env_steps": steps[:, -1],
             "cumulative_steps": steps,
             "seconds": seconds,
+            # the loop's rate once compiled: full chunks after the first (which compiles)
+            "steady_seconds_per_iteration": (float(np.median(chunks[1:-1] if len(chunks) > 2 else chunks))
+                                             / cfg.chunk_size if len(chunks) > 1 else seconds / task.num_iterations),
         }
     return out
 
