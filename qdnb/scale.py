@@ -373,18 +373,19 @@ _CONFIGS: dict[str, dict[str, object]] = {
         # small Point-Maze: Table 3.2's networks, minibatch, K, grid and N; 100 gradient steps per
         # iteration, Adam at QDax's rates per role, a lasting coarse archive (the base of
         # bench/qdpg_sweep.py); the largest equal budget for six methods that fits the notebook's
-        # time on 2 cores (bench/qdpg.py's rate x methods).
+        # time on 2 cores: 3e5 steps (and 1.05e5 per ant maze) ran 23 min on 2 cores, so 2e5 (and
+        # 5.5e4), about 15 min.
         "small": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"),
-            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=300_000, optimizer="adam", learning_rate=3e-4,
+            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=200_000, optimizer="adam", learning_rate=3e-4,
                                           mutation_learning_rate=1e-3, buffer_size=1_000_000, num_critic_steps=100,
                                           num_pg_steps=100, archive_threshold=0.1, archive_size=2_000),
-            antmaze=dataclasses.replace(ANT_PAPER, num_steps=105_000, episode_length=500, policy_hidden=(64, 64),
+            antmaze=dataclasses.replace(ANT_PAPER, num_steps=55_000, episode_length=500, policy_hidden=(64, 64),
                                         critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
-                                        buffer_size=105_000, num_critic_steps=50, num_pg_steps=50),
-            anttrap=dataclasses.replace(ANT_PAPER, num_steps=105_000, episode_length=500, policy_hidden=(64, 64),
+                                        buffer_size=55_000, num_critic_steps=50, num_pg_steps=50),
+            anttrap=dataclasses.replace(ANT_PAPER, num_steps=55_000, episode_length=500, policy_hidden=(64, 64),
                                         critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
-                                        buffer_size=105_000, num_critic_steps=50, num_pg_steps=50)),
+                                        buffer_size=55_000, num_critic_steps=50, num_pg_steps=50)),
         "paper": QDPGConfig(num_seeds=5, chunk_size=50, pointmaze=POINTMAZE_PAPER, antmaze=ANT_PAPER,
                             anttrap=dataclasses.replace(ANT_PAPER, episode_length=1000)),
     },
