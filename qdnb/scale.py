@@ -145,6 +145,13 @@ ANT_PAPER = QDPGTask(num_steps=100_000_000, episode_length=3000, num_actors=10, 
                      num_critic_steps=300, num_pg_steps=300, archive_threshold=0.1,
                      mutation_learning_rate=3e-4)
 
+# Ant-Maze and Ant-Trap share their settings below `paper` (Table 3.2 groups them too).
+ANT_TINY = dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
+                               critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
+                               buffer_size=10_000, num_critic_steps=10, num_pg_steps=10)
+ANT_SMALL = dataclasses.replace(ANT_PAPER, num_steps=55_000, episode_length=500, policy_hidden=(64, 64),
+                                critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
+                                buffer_size=55_000, num_critic_steps=50, num_pg_steps=50)
 
 @dataclass(frozen=True)
 class QDPGConfig:
@@ -364,12 +371,8 @@ _CONFIGS: dict[str, dict[str, object]] = {
             pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=8_000, policy_hidden=(16, 16),
                                           critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
                                           buffer_size=20_000, num_critic_steps=10, num_pg_steps=10),
-            antmaze=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
-                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
-                                        buffer_size=10_000, num_critic_steps=10, num_pg_steps=10),
-            anttrap=dataclasses.replace(ANT_PAPER, num_steps=1_500, episode_length=50, policy_hidden=(16, 16),
-                                        critic_hidden=(32, 32), optimizer="adam", learning_rate=1e-3, mutation_learning_rate=1e-3,
-                                        buffer_size=10_000, num_critic_steps=10, num_pg_steps=10)),
+            antmaze=ANT_TINY,
+            anttrap=ANT_TINY),
         # small Point-Maze: Table 3.2's networks, minibatch, K, grid and N; 100 gradient steps per
         # iteration, Adam at QDax's rates per role, a lasting coarse archive (the base of
         # bench/qdpg_sweep.py); the largest equal budget for six methods that fits the notebook's
@@ -380,12 +383,8 @@ _CONFIGS: dict[str, dict[str, object]] = {
             pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=200_000, optimizer="adam", learning_rate=3e-4,
                                           mutation_learning_rate=1e-3, buffer_size=1_000_000, num_critic_steps=100,
                                           num_pg_steps=100, archive_threshold=0.1, archive_size=2_000),
-            antmaze=dataclasses.replace(ANT_PAPER, num_steps=55_000, episode_length=500, policy_hidden=(64, 64),
-                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
-                                        buffer_size=55_000, num_critic_steps=50, num_pg_steps=50),
-            anttrap=dataclasses.replace(ANT_PAPER, num_steps=55_000, episode_length=500, policy_hidden=(64, 64),
-                                        critic_hidden=(64, 64), optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3,
-                                        buffer_size=55_000, num_critic_steps=50, num_pg_steps=50)),
+            antmaze=ANT_SMALL,
+            anttrap=ANT_SMALL),
         "paper": QDPGConfig(num_seeds=5, chunk_size=50, pointmaze=POINTMAZE_PAPER, antmaze=ANT_PAPER,
                             anttrap=dataclasses.replace(ANT_PAPER, episode_length=1000)),
     },

@@ -39,10 +39,10 @@ def stop_on_faces(p: jax.Array, q: jax.Array) -> jax.Array:
     arena's border extends beyond it, as in the reference, so that a move
     leaving the arena cannot pass round the wall's end before the clip."""
     y = q[1]
+    dy = jnp.where(q[1] == p[1], 1.0, q[1] - p[1])
     for x0, x1, lo, hi in WALLS:
         x0, x1 = (-jnp.inf if x0 <= -1.0 else x0), (jnp.inf if x1 >= 1.0 else x1)
         for face, crossing in ((lo, (p[1] <= lo) & (q[1] > lo)), (hi, (p[1] >= hi) & (q[1] < hi))):
-            dy = jnp.where(q[1] == p[1], 1.0, q[1] - p[1])
             x_at_face = p[0] + (face - p[1]) / dy * (q[0] - p[0])
             y = jnp.where(crossing & (x_at_face >= x0) & (x_at_face <= x1), face, y)
     return jnp.stack([q[0], y])
@@ -57,9 +57,9 @@ def crosses_an_end(p: jax.Array, q: jax.Array) -> jax.Array:
     """Whether the segment ``p -> q`` enters a wall through its end inside the
     arena (crossing the line x = end strictly between the wall's faces)."""
     hits = []
+    dx = jnp.where(q[0] == p[0], 1.0, q[0] - p[0])
     for x0, x1, lo, hi in WALLS:
         for end in [e for e in (x0, x1) if -1.0 < e < 1.0]:
-            dx = jnp.where(q[0] == p[0], 1.0, q[0] - p[0])
             y_at_end = p[1] + (end - p[0]) / dx * (q[1] - p[1])
             crossing = ((p[0] <= end) & (q[0] > end)) | ((p[0] >= end) & (q[0] < end))
             hits.append(crossing & (y_at_end > lo) & (y_at_end < hi))

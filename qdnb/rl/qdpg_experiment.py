@@ -130,11 +130,18 @@ def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bo
             "env_steps": steps[:, -1],
             "cumulative_steps": steps,
             "seconds": seconds,
-            # the loop's rate once compiled: full chunks after the first (which compiles)
-            "steady_seconds_per_iteration": (float(np.median(chunks[1:-1] if len(chunks) > 2 else chunks))
-                                             / cfg.chunk_size if len(chunks) > 1 else seconds / task.num_iterations),
+            "steady_seconds_per_iteration": steady_rate(chunks, cfg.chunk_size, seconds / task.num_iterations),
         }
     return out
+
+
+def steady_rate(chunk_seconds: list[float], chunk_size: int, fallback: float) -> float:
+    """Seconds per iteration of a compiled loop: the median full chunk after the
+    first (which compiles) and before the last (which may be partial);
+    ``fallback`` when the loop ran in one chunk."""
+    if len(chunk_seconds) < 2:
+        return fallback
+    return float(np.median(chunk_seconds[1:-1] or chunk_seconds)) / chunk_size
 
 
 def grid_coverage(descriptors: np.ndarray, env: Env, bins: int) -> np.ndarray:
