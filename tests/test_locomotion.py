@@ -39,7 +39,7 @@ def test_ant_omni_descriptor_and_fitness(ant):
     actions = np.clip(np.asarray(ev.trajectory["action"]), -1, 1)
     np.testing.assert_allclose(ev.fitness, -np.linalg.norm(actions, axis=-1).sum(axis=1), rtol=1e-5)
     # the descriptor is where the torso ended: the last state descriptor
-    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["state_descriptor"])[:, -1], rtol=1e-6)
+    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"])[:, -1], rtol=1e-6)
     assert np.all(np.asarray(ev.length) == 12)
 
 
@@ -66,7 +66,7 @@ def test_halfcheetah_descriptor_is_the_fraction_of_steps_in_contact(cheetah):
         jnp.array([0.0, 1.0]), jax.random.PRNGKey(3))
     assert ev.descriptor.shape == (2, 2)
     assert np.all((ev.descriptor >= 0) & (ev.descriptor <= 1))
-    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["state_descriptor"]).mean(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"]).mean(axis=1), rtol=1e-6)
 
 
 def test_halfcheetah_reward_is_forward_speed_minus_action_norm(cheetah):

@@ -183,7 +183,7 @@ def test_ant_maze_fitness_is_the_best_reward(maze):
     rewards = np.where(valid, np.asarray(ev.trajectory["reward"]), -np.inf)
     np.testing.assert_allclose(ev.fitness, rewards.max(axis=1), rtol=1e-6)
     assert np.all(ev.fitness > -36.0) and np.all(ev.fitness < -34.0)  # about 35 from the goal
-    sd = np.asarray(ev.trajectory["state_descriptor"])
+    sd = np.asarray(ev.trajectory["next_state_descriptor"])
     np.testing.assert_allclose(np.asarray(ev.trajectory["reward"])[valid],
                                -np.linalg.norm(np.asarray(maze.goal) - sd, axis=-1)[valid], rtol=1e-5)
     low, high = maze.descriptor_bounds

@@ -21,9 +21,12 @@ class Evaluation:
     whose ``fitness_mode`` is ``"max_reward"``), ``descriptor`` the behaviour descriptor,
     ``length`` the number of steps before the episode ended.  ``trajectory`` is
     ``None`` unless asked for: then a dict of per-step ``obs``, ``action``,
-    ``reward``, ``next_obs``, ``done``, ``state_descriptor`` and ``valid``;
-    a transition ``(s_t, a_t, r_t, s_{t+1})`` carries ``psi(s_t)``, the
-    descriptor of the state it starts from, as QD-PG stores it (Section 3.6.3).
+    ``reward``, ``next_obs``, ``done``, ``state_descriptor``,
+    ``next_state_descriptor`` and ``valid``: a transition
+    ``(s_t, a_t, r_t, s_{t+1})`` carries ``psi(s_t)``, the descriptor of the
+    state it starts from, as QD-PG stores it (Section 3.6.3), and
+    ``psi(s_{t+1})``, the point the step reached (a path drawn from these ends
+    where the episode's final descriptor is).
     """
 
     fitness: jax.Array
@@ -75,7 +78,8 @@ def evaluate_policies(
         if return_trajectory:
             out = {"obs": state.obs, "action": action, "reward": reward, "next_obs": nxt.obs,
                    "done": nxt.done, "terminal": nxt.done & (nxt.steps < env.episode_length),
-                   "state_descriptor": state.state_descriptor, "valid": tally.alive}
+                   "state_descriptor": state.state_descriptor, "next_state_descriptor": nxt.state_descriptor,
+                   "valid": tally.alive}
         return (nxt, new_tally), out
 
     step = jax.vmap(one_env)

@@ -109,7 +109,7 @@ class Player:
 
     def __init__(self, env: Env, network: MLP, chunk: int, record: bool = False):
         self.chunk = chunk
-        kept = ("obs", "action", "valid") if record else "state_descriptor"
+        kept = ("obs", "action", "valid") if record else "next_state_descriptor"
 
         def play(genotypes, keys):
             def one(g, k):
