@@ -48,6 +48,8 @@ def test_novelty_matches_brute_force_on_large_archives():
                                rtol=1e-5, atol=1e-7)
     values = jax.random.normal(jax.random.PRNGKey(2), (7, 3_333))  # not a multiple of the block
     np.testing.assert_allclose(k_smallest(values, 10), np.sort(np.asarray(values), axis=1)[:, :10], rtol=1e-6)
+    small_rows = jax.random.normal(jax.random.PRNGKey(3), (7, 2_000))  # the small archive's size: blockwise too
+    np.testing.assert_allclose(k_smallest(small_rows, 10), np.sort(np.asarray(small_rows), axis=1)[:, :10], rtol=1e-6)
     archive = NoveltyArchive.create(10_000, 2).replace(data=reference, num_added=jnp.asarray(10_000, jnp.int32))
     np.testing.assert_allclose(archive.novelty(queries, 10), brute_force_novelty(queries, reference, 10), rtol=1e-5)
 
