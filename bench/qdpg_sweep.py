@@ -78,6 +78,19 @@ def summarise(result: dict, seconds: float) -> dict:
     }
 
 
+def code_commit() -> str | None:
+    """The checkout's commit (with ``+dirty`` for uncommitted changes), or None outside git."""
+    import subprocess
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+                              cwd=Path(__file__).parent).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
 def select(runs: dict, budget_seconds: float | None) -> str | None:
     """The selection rule of the docstring, on the variants with every method run."""
     scored = []
@@ -126,6 +139,7 @@ def main() -> None:
             result = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=(method,))
             entry = summarise(result["methods"][method], time.perf_counter() - start)
             entry["settings"] = overrides
+            entry["commit"] = code_commit()  # wall times depend on the code that ran them
             runs.setdefault(name, {})[method] = entry
             out["selected"] = select(runs, args.qdpg_budget_seconds)
             args.out.parent.mkdir(parents=True, exist_ok=True)
