@@ -28,24 +28,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.envs.pointmaze import WALLS
+from qdnb.envs.pointmaze import WALLS, maze_regions
 from qdnb.qd.algorithms import run_seeds
 from qdnb.rl.qdpg_experiment import build_algorithms, make_task_env
 from qdnb.scale import config
 
-(UPPER_X0, UPPER_X1, UPPER_LO, UPPER_HI), (LOWER_X0, LOWER_X1, LOWER_LO, LOWER_HI) = WALLS
-
-
 def regions(points: np.ndarray) -> dict[str, float]:
-    """Share of ``points`` (n x 2) in each region of the maze."""
-    x, y = points[:, 0], points[:, 1]
-    between = (y > LOWER_HI - 1e-6) & (y < UPPER_LO + 1e-6)
-    shares = {"below the lower wall": y < LOWER_LO + 1e-6,
-              "between the walls": between,
-              "right-hand passage (x > 0.5, between the walls)": between & (x > UPPER_X1),
-              "above the upper wall": y > UPPER_HI - 1e-6}
+    """Share of ``points`` (n x 2) in each region of the maze (``maze_regions``)."""
     n = max(len(points), 1)
-    return {name: float(mask.sum() / n) for name, mask in shares.items()}
+    return {name: float(mask.sum() / n) for name, mask in maze_regions(points).items()}
 
 
 def main() -> None:
@@ -74,7 +65,8 @@ def main() -> None:
         visited = state.buffer.data["state_descriptor"][:size]
         archive = state.archive.data[: int(min(state.archive.num_added, state.archive.capacity))]
         finals = np.asarray(history["descriptors"]).reshape(-1, 2)
-        above = np.flatnonzero(visited[:, 1] > UPPER_HI - 1e-6)
+        visited_regions = maze_regions(visited)
+        above = np.flatnonzero(visited_regions["above the upper wall"])
         out["methods"][method] = {
             "seconds": time.perf_counter() - start,
             "transitions": size,
@@ -83,7 +75,7 @@ def main() -> None:
             "archive": regions(archive),
             "episode_final_positions": regions(finals),
             "steps_when_first_above_the_upper_wall": int(above[0]) if len(above) else None,
-            "highest_visited_y_right_of_the_wall_end": float(visited[visited[:, 0] > UPPER_X1, 1].max(initial=-1.0)),
+            "highest_visited_y_right_of_the_wall_end": float(visited[visited[:, 0] > WALLS[0][1], 1].max(initial=-1.0)),
         }
         print(method, json.dumps(out["methods"][method], indent=1), flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -318,18 +318,25 @@ def test_the_sweep_script_runs_a_tiny_grid_resumes_and_selects(tmp_path):
     assert sweep.select(fake, None) == "b" and sweep.select(fake, 500.0) == "a"
 
 
-def test_reach_regions_split_the_maze_at_the_walls():
-    """bench/qdpg_reach.py's regions on hand-placed points: a point stopped on
-    the upper wall's lower face is between the walls, one on its upper face above."""
+def test_maze_regions_split_the_maze_at_the_walls():
+    """maze_regions on hand-placed points: a point stopped on the upper wall's
+    lower face is between the walls, one on its upper face above; the shares of
+    bench/qdpg_reach.py are the masks' means."""
     import importlib.util
+
+    from qdnb.envs.pointmaze import maze_regions
+
+    points = np.array([[0.0, -0.9], [0.0, 0.0], [0.8, 0.0], [0.0, 0.20], [0.0, 0.21], [-0.5, 0.8]], np.float32)
+    masks = maze_regions(points)
+    assert masks["below the lower wall"].tolist() == [True, False, False, False, False, False]
+    assert masks["between the walls"].tolist() == [False, True, True, True, False, False]
+    assert masks["right-hand passage (x > 0.5, between the walls)"].tolist() == [False, False, True, False, False, False]
+    assert masks["above the upper wall"].tolist() == [False, False, False, False, True, True]
+    assert maze_regions(points.reshape(2, 3, 2))["between the walls"].shape == (2, 3)
 
     path = Path(__file__).parents[1] / "bench" / "qdpg_reach.py"
     spec = importlib.util.spec_from_file_location("qdpg_reach", path)
     reach = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(reach)
-    points = np.array([[0.0, -0.9], [0.0, 0.0], [0.8, 0.0], [0.0, 0.20], [0.0, 0.21], [-0.5, 0.8]])
     shares = reach.regions(points)
-    assert shares["below the lower wall"] == 1 / 6
-    assert shares["between the walls"] == 3 / 6
-    assert shares["right-hand passage (x > 0.5, between the walls)"] == 1 / 6
-    assert shares["above the upper wall"] == 2 / 6
+    assert shares["between the walls"] == 3 / 6 and shares["above the upper wall"] == 2 / 6

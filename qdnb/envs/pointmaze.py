@@ -73,6 +73,25 @@ def move(p: jax.Array, action: jax.Array, step_size: float = 0.1) -> jax.Array:
     return jnp.clip(q, -1.0, 1.0)
 
 
+def maze_regions(points, tolerance: float = 1e-6) -> dict:
+    """Boolean masks of ``points`` (... x 2, NumPy) in the maze's regions:
+    below the lower wall, between the walls, the right-hand passage past the
+    upper wall's end (between the walls, x > its end) and above the upper wall
+    (where the goal is).  A point stopped on a wall's face lies on that face's
+    side (on the upper wall's lower face: between the walls); ``tolerance``
+    absorbs float32 positions on a face."""
+    import numpy as np
+
+    points = np.asarray(points)
+    x, y = points[..., 0], points[..., 1]
+    (_, upper_x1, upper_lo, upper_hi), (_, _, lower_lo, lower_hi) = WALLS
+    between = (y > lower_hi - tolerance) & (y < upper_lo + tolerance)
+    return {"below the lower wall": y < lower_lo + tolerance,
+            "between the walls": between,
+            "right-hand passage (x > 0.5, between the walls)": between & (x > upper_x1),
+            "above the upper wall": y > upper_hi - tolerance}
+
+
 def in_goal(p: jax.Array) -> jax.Array:
     return jnp.all(jnp.abs(p - jnp.asarray(GOAL)) <= GOAL_HALF_SIDE)
 
