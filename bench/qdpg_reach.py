@@ -22,6 +22,7 @@ import dataclasses
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -32,6 +33,10 @@ from qdnb.envs.pointmaze import WALLS, maze_regions
 from qdnb.qd.algorithms import run_seeds
 from qdnb.rl.qdpg_experiment import build_algorithms, make_task_env
 from qdnb.scale import config
+
+sys.path.insert(0, str(Path(__file__).parent))
+from qdpg_sweep import code_commit  # noqa: E402
+
 
 def regions(points: np.ndarray) -> dict[str, float]:
     """Share of ``points`` (n x 2) in each region of the maze (``maze_regions``)."""
@@ -55,7 +60,11 @@ def main() -> None:
     env = make_task_env(cfg, "pointmaze")
     algorithms = build_algorithms(cfg, "pointmaze", env)
     out = {"scale": args.scale, "steps": args.steps, "seed": args.seed, "machine": platform.machine(),
-           "cpu_count": os.cpu_count(), "walls": [list(w) for w in WALLS], "methods": {}}
+           "cpu_count": os.cpu_count(), "walls": [list(w) for w in WALLS],
+           "settings": {k: getattr(task, k) for k in ("optimizer", "learning_rate", "mutation_learning_rate",
+                                                      "num_critic_steps", "num_pg_steps", "archive_threshold",
+                                                      "archive_size", "num_actors")},
+           "commit": code_commit(), "methods": {}}
     for method in args.methods:
         start = time.perf_counter()
         states, _, history = run_seeds(algorithms[method], jax.random.PRNGKey(args.seed)[None],

@@ -373,16 +373,16 @@ _CONFIGS: dict[str, dict[str, object]] = {
                                           buffer_size=20_000, num_critic_steps=10, num_pg_steps=10),
             antmaze=ANT_TINY,
             anttrap=ANT_TINY),
-        # small Point-Maze: Table 3.2's networks, minibatch, K, grid and N; 100 gradient steps per
-        # iteration, Adam at QDax's rates per role, a lasting coarse archive (the base of
-        # bench/qdpg_sweep.py); the largest equal budget for six methods that fits the notebook's
-        # time on 2 cores: 3e5 steps (and 1.05e5 per ant maze) ran 23 min on 2 cores, so 2e5 (and
-        # 5.5e4), about 15 min.
+        # small Point-Maze: Table 3.2's networks, minibatch, K, grid, N and archive (threshold 1e-4,
+        # 10,000 FIFO slots: bench/qdpg_sweep.py's pick, variant "archive-table-3.2"); 100 gradient
+        # steps per iteration and Adam at QDax's rates per role; the largest equal budget for six
+        # methods that fits the notebook's time on 2 cores: 3e5 steps (and 1.05e5 per ant maze) ran
+        # 23 min on 2 cores, so 2e5 (and 5.5e4), about 15 min.
         "small": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"),
             pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=200_000, optimizer="adam", learning_rate=3e-4,
                                           mutation_learning_rate=1e-3, buffer_size=1_000_000, num_critic_steps=100,
-                                          num_pg_steps=100, archive_threshold=0.1, archive_size=2_000),
+                                          num_pg_steps=100),
             antmaze=ANT_SMALL,
             anttrap=ANT_SMALL),
         "paper": QDPGConfig(num_seeds=5, chunk_size=50, pointmaze=POINTMAZE_PAPER, antmaze=ANT_PAPER,
