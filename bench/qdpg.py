@@ -10,7 +10,7 @@ parts add up to about one iteration; the novelty part scores every critic batch
 of an iteration in one pass, as the critic training does.  The whole loop is
 timed two ways: compiled once as a single ``lax.scan`` (the steady rate,
 extrapolated to the scale's budget), and as the notebook runs it, through
-``run_seeds`` (``vmap`` over one seed, jitted chunks, a progress bar): the
+``run_seeds`` on the notebook's QD-PG seeds (``vmap``, jitted chunks): the
 difference between runs of ``n`` and ``2n`` iterations is its steady rate,
 compilation excluded.  The two rates should agree within 15 %.
 """
@@ -81,10 +81,10 @@ def main() -> None:
     parts["gradient_updates"] = max(parts["gradient_updates"] - parts["novelty"], 0.0)
     steps_per_iteration = task.num_actors * task.episode_length
 
-    loops = {}
+    loops, seeds = {}, cfg.seeds("pointmaze", "QD-PG")
     for n in (args.iterations, 2 * args.iterations):
         start = time.perf_counter()
-        _, _, history = run_seeds(algo, jax.random.split(key, 1), n, cfg.chunk_size, progress=False)
+        _, _, history = run_seeds(algo, jax.random.split(key, seeds), n, cfg.chunk_size, progress=False)
         jax.block_until_ready(history)
         loops[n] = time.perf_counter() - start
     loop = loops[args.iterations]
@@ -119,6 +119,7 @@ def main() -> None:
         "loop_seconds_with_compile": loop,
         "loop_seconds_steady": steady,
         "steady_seconds_per_iteration": per_iteration,
+        "run_seeds_num_seeds": seeds,
         "run_seeds_seconds_per_iteration": run_seeds_per_iteration,
         "run_seeds_over_steady": run_seeds_per_iteration / per_iteration,
         "env_steps_per_second": env_steps / steady,

@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_reach.json")
     args = parser.parse_args()
     cfg = config("ch3_qdpg", args.scale)
-    cfg = dataclasses.replace(cfg, num_seeds=1, pointmaze=dataclasses.replace(cfg.pointmaze, num_steps=args.steps))
+    cfg = dataclasses.replace(cfg, num_seeds=1, pointmaze_qdpg_seeds=None, pointmaze=dataclasses.replace(cfg.pointmaze, num_steps=args.steps))
     task = cfg.pointmaze
     if task.buffer_size < args.steps:
         parser.error(f"the buffer ({task.buffer_size}) must hold every transition of {args.steps} steps")

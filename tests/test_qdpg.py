@@ -15,7 +15,7 @@ from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.novelty import NoveltyArchive, k_smallest, knn_novelty
 from qdnb.rl.networks import MLP
 from qdnb.rl.qdpg import QDPG, TD3Agent, update_kinds
-from qdnb.rl.qdpg_experiment import build_algorithms, grid_coverage, reached_goal
+from qdnb.rl.qdpg_experiment import build_algorithms, grid_coverage, reached_goal, run_environment
 from qdnb.rl.td3 import TD3Config, td3_target
 from qdnb.scale import QDPGConfig, config
 
@@ -194,6 +194,23 @@ def test_configs_and_helpers():
     np.testing.assert_allclose(grid_coverage(d, env, 2), [2 / 4, 1 / 4])  # (0,0) and (0.1,0.1) share a cell
     algos = build_algorithms(config("ch3_qdpg", "tiny"), "pointmaze", env)
     assert set(algos) == {"QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME"}
+
+
+def test_qdpg_on_point_maze_runs_on_its_own_seed_count():
+    """``pointmaze_qdpg_seeds`` gives QD-PG on Point-Maze its own seeds; every
+    other method (and QD-PG elsewhere) keeps ``num_seeds``; a count below one is
+    refused."""
+    tiny = config("ch3_qdpg", "tiny")
+    cfg = dataclasses.replace(tiny, pointmaze_qdpg_seeds=2,
+                              pointmaze=dataclasses.replace(tiny.pointmaze, num_steps=2 * 4 * 200))
+    assert cfg.seeds("pointmaze", "QD-PG") == 2 and cfg.seeds("pointmaze", "TD3") == 1
+    assert cfg.seeds("antmaze", "QD-PG") == 1 and tiny.seeds("pointmaze", "QD-PG") == 1
+    out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=False, methods=("QD-PG", "TD3"))
+    assert out["methods"]["QD-PG"]["final_performance"].shape == (2,)
+    assert out["methods"]["TD3"]["final_performance"].shape == (1,)
+    assert out["methods"]["QD-PG"]["history"]["descriptors"].shape[:2] == (2, 2)
+    with pytest.raises(ValueError, match="pointmaze_qdpg_seeds=0 must be at least 1"):
+        dataclasses.replace(tiny, pointmaze_qdpg_seeds=0)
 
 
 def test_the_target_critic_moves_on_every_critic_step_and_the_target_actor_on_actor_steps(maze):

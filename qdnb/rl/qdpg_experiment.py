@@ -1,7 +1,7 @@
 """Chapter 3's experiment: QD-PG, its ablations, TD3 and PGA-ME on one environment.
 
 ``run_environment(cfg, env_name, key)`` runs every method of the config on the
-same environment-step budget (``num_seeds`` seeds at once, ``vmap``), and
+same environment-step budget (each method's seeds at once, ``vmap``), and
 returns, per method, the history of every iteration (performance, grid
 coverage, environment steps, every evaluated policy's descriptor and fitness)
 and the final MAP-Elites grids.
@@ -95,8 +95,8 @@ def final_grid(state: Any) -> dict[str, np.ndarray] | None:
 
 def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bool = True,
                     methods: tuple[str, ...] | None = None) -> dict[str, Any]:
-    """Run every method of ``cfg`` (or those of ``methods``) on ``env_name`` for
-    ``cfg.num_seeds`` seeds.
+    """Run every method of ``cfg`` (or those of ``methods``) on ``env_name``,
+    each on ``cfg.seeds(env_name, method)`` seeds.
 
     Returns ``{"env", "env_name", "methods": {name: {"history", "grid",
     "final_performance", "coverage", "env_steps", "seconds",
@@ -111,9 +111,9 @@ def run_environment(cfg: QDPGConfig, env_name: str, key: jax.Array, progress: bo
         if unknown:
             raise ValueError(f"methods {sorted(unknown)} are not run on {env_name}; valid: {', '.join(algorithms)}")
         algorithms = {m: algorithms[m] for m in methods}
-    keys = jax.random.split(key, cfg.num_seeds)
     out: dict[str, Any] = {"env": env, "env_name": env_name, "methods": {}}
     for method, algo in algorithms.items():
+        keys = jax.random.split(key, cfg.seeds(env_name, method))
         start, chunks = time.perf_counter(), []
         states, _, history = run_seeds(algo, keys, task.num_iterations - 1, cfg.chunk_size,
                                        progress=progress, desc=f"{env_name} {method}", chunk_seconds=chunks)
