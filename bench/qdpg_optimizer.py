@@ -34,7 +34,7 @@ def main() -> None:
                                            learning_rate=small.pointmaze.learning_rate)}
     rows = []
     for label, change in settings.items():
-        cfg = dataclasses.replace(small, num_seeds=1, pointmaze_qdpg_seeds=None, pointmaze=dataclasses.replace(small.pointmaze, **change))
+        cfg = dataclasses.replace(small.with_seeds(1), pointmaze=dataclasses.replace(small.pointmaze, **change))
         algorithms = build_algorithms(cfg, "pointmaze")
         for method in args.methods.split(","):
             start = time.perf_counter()

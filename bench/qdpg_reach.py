@@ -22,7 +22,6 @@ import dataclasses
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -30,18 +29,19 @@ import jax
 import numpy as np
 
 from qdnb.envs.pointmaze import WALLS, maze_regions
+from qdnb.provenance import git_sha
 from qdnb.qd.algorithms import run_seeds
 from qdnb.rl.qdpg_experiment import build_algorithms, make_task_env
 from qdnb.scale import config
 
-sys.path.insert(0, str(Path(__file__).parent))
-from qdpg_sweep import code_commit  # noqa: E402
+def shares(masks: dict[str, np.ndarray]) -> dict[str, float]:
+    """Share of the points in each region, from ``maze_regions``'s masks."""
+    return {name: float(mask.sum() / max(mask.size, 1)) for name, mask in masks.items()}
 
 
 def regions(points: np.ndarray) -> dict[str, float]:
-    """Share of ``points`` (n x 2) in each region of the maze (``maze_regions``)."""
-    n = max(len(points), 1)
-    return {name: float(mask.sum() / n) for name, mask in maze_regions(points).items()}
+    """Share of ``points`` (n x 2) in each region of the maze."""
+    return shares(maze_regions(points))
 
 
 def main() -> None:
@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_reach.json")
     args = parser.parse_args()
     cfg = config("ch3_qdpg", args.scale)
-    cfg = dataclasses.replace(cfg, num_seeds=1, pointmaze_qdpg_seeds=None, pointmaze=dataclasses.replace(cfg.pointmaze, num_steps=args.steps))
+    cfg = dataclasses.replace(cfg.with_seeds(1), pointmaze=dataclasses.replace(cfg.pointmaze, num_steps=args.steps))
     task = cfg.pointmaze
     if task.buffer_size < args.steps:
         parser.error(f"the buffer ({task.buffer_size}) must hold every transition of {args.steps} steps")
@@ -64,7 +64,7 @@ def main() -> None:
            "settings": {k: getattr(task, k) for k in ("optimizer", "learning_rate", "mutation_learning_rate",
                                                       "num_critic_steps", "num_pg_steps", "archive_threshold",
                                                       "archive_size", "num_actors")},
-           "commit": code_commit(), "methods": {}}
+           "commit": git_sha(), "methods": {}}
     for method in args.methods:
         start = time.perf_counter()
         states, _, history = run_seeds(algorithms[method], jax.random.PRNGKey(args.seed)[None],
@@ -75,11 +75,11 @@ def main() -> None:
         archive = state.archive.data[: int(min(state.archive.num_added, state.archive.capacity))]
         finals = np.asarray(history["descriptors"]).reshape(-1, 2)
         visited_regions = maze_regions(visited)
-        above = np.flatnonzero(visited_regions["above the upper wall"])
+        above = np.flatnonzero(visited_regions["above the upper wall"])  # in step order
         out["methods"][method] = {
             "seconds": time.perf_counter() - start,
             "transitions": size,
-            "visited_states": regions(visited),
+            "visited_states": shares(visited_regions),
             "archive_entries": int(len(archive)),
             "archive": regions(archive),
             "episode_final_positions": regions(finals),

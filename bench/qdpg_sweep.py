@@ -61,7 +61,7 @@ def variant_config(grid: str, name: str, seeds: int):
     cfg = config("ch3_qdpg", SCALE[grid])
     overrides = {**BASE, **(TINY_BASE if grid == "tiny" else {}), **GRIDS[grid][name], "num_steps": BUDGET[grid]}
     task = dataclasses.replace(cfg.pointmaze, **overrides)
-    return dataclasses.replace(cfg, num_seeds=seeds, pointmaze_qdpg_seeds=None, pointmaze=task), overrides
+    return dataclasses.replace(cfg.with_seeds(seeds), pointmaze=task), overrides
 
 
 def summarise(result: dict, seconds: float) -> dict:

@@ -216,6 +216,10 @@ class QDPGConfig:
             return self.pointmaze_qdpg_seeds
         return self.num_seeds
 
+    def with_seeds(self, num_seeds: int) -> "QDPGConfig":
+        """This config with every method, QD-PG on Point-Maze included, on ``num_seeds`` seeds."""
+        return dataclasses.replace(self, num_seeds=num_seeds, pointmaze_qdpg_seeds=None)
+
 
 QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
 
@@ -390,8 +394,8 @@ _CONFIGS: dict[str, dict[str, object]] = {
         # 10,000 FIFO slots: bench/qdpg_sweep.py's pick, variant "archive-table-3.2"); 100 gradient
         # steps per iteration and Adam at QDax's rates per role; the largest equal budget for six
         # methods that fits the notebook's time on 2 cores: 3e5 steps (and 1.05e5 per ant maze) ran
-        # 23 min on 2 cores, so 2e5 (and 5.5e4): 706 s measured with one seed; QD-PG on Point-Maze
-        # runs on 2 seeds (issue 14: "if it fits"; 2 seeds for every method would take about 23 min).
+        # 23 min on 2 cores, so 2e5 (and 5.5e4): 706 s measured with one seed, 727 s with QD-PG on
+        # Point-Maze on 2 seeds (issue 14: "if it fits"; 2 seeds for every method: about 23 min).
         "small": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"), pointmaze_qdpg_seeds=2,
             pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=200_000, optimizer="adam", learning_rate=3e-4,

@@ -205,6 +205,7 @@ def test_qdpg_on_point_maze_runs_on_its_own_seed_count():
                               pointmaze=dataclasses.replace(tiny.pointmaze, num_steps=2 * 4 * 200))
     assert cfg.seeds("pointmaze", "QD-PG") == 2 and cfg.seeds("pointmaze", "TD3") == 1
     assert cfg.seeds("antmaze", "QD-PG") == 1 and tiny.seeds("pointmaze", "QD-PG") == 1
+    assert cfg.with_seeds(3).seeds("pointmaze", "QD-PG") == 3 and cfg.with_seeds(3).seeds("pointmaze", "TD3") == 3
     out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=False, methods=("QD-PG", "TD3"))
     assert out["methods"]["QD-PG"]["final_performance"].shape == (2,)
     assert out["methods"]["TD3"]["final_performance"].shape == (1,)
@@ -356,4 +357,7 @@ def test_maze_regions_split_the_maze_at_the_walls():
     reach = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(reach)
     shares = reach.regions(points)
-    assert shares["between the walls"] == 3 / 6 and shares["above the upper wall"] == 2 / 6
+    assert shares["below the lower wall"] == 1 / 6
+    assert shares["between the walls"] == 3 / 6
+    assert shares["right-hand passage (x > 0.5, between the walls)"] == 1 / 6
+    assert shares["above the upper wall"] == 2 / 6

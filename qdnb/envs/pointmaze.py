@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from qdnb.envs.base import Env, EnvState
 
@@ -80,8 +81,6 @@ def maze_regions(points, tolerance: float = 1e-6) -> dict:
     (where the goal is).  A point stopped on a wall's face lies on that face's
     side (on the upper wall's lower face: between the walls); ``tolerance``
     absorbs float32 positions on a face."""
-    import numpy as np
-
     points = np.asarray(points)
     x, y = points[..., 0], points[..., 1]
     (_, upper_x1, upper_lo, upper_hi), (_, _, lower_lo, lower_hi) = WALLS
