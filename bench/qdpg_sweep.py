@@ -14,6 +14,10 @@ in it, so an interrupted sweep resumes.
     python bench/qdpg_sweep.py                 # the `small` grid
     python bench/qdpg_sweep.py --grid tiny     # two variants at `tiny` (the test)
 
+Round 1 changes one factor at a time around "base"; round 2, added once round
+1 had picked ``archive-table-3.2``, changes one more factor around that pick.
+The same rule applies to both rounds together.
+
 Selection rule, fixed before any run: among the variants whose QD-PG iteration
 fits the notebook's time budget, the one with the highest mean final
 performance over QD-PG's and D-PG's seeds; ties go to the cheaper variant.  The
@@ -46,6 +50,10 @@ GRIDS = {
         "actors-8": dict(num_actors=8),  # twice the actors per iteration, half the iterations
         "one-rate-5e-3": dict(learning_rate=5e-3, mutation_learning_rate=5e-3),  # the settings issue 14 reviewed
         "archive-0.03": dict(archive_threshold=0.03, archive_size=5_000),  # a finer lasting archive
+        # Round 2, added after round 1 picked "archive-table-3.2": one more factor changed around that pick.
+        "table-3.2+steps-200": dict(archive_threshold=1e-4, archive_size=10_000, num_critic_steps=200,
+                                    num_pg_steps=200),  # the gradient-step ratio, the largest departure left
+        "table-3.2+actors-8": dict(archive_threshold=1e-4, archive_size=10_000, num_actors=8),
     },
     "tiny": {
         "base": {},
