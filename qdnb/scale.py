@@ -390,17 +390,17 @@ _CONFIGS: dict[str, dict[str, object]] = {
                                           buffer_size=20_000, num_critic_steps=10, num_pg_steps=10),
             antmaze=ANT_TINY,
             anttrap=ANT_TINY),
-        # small Point-Maze: Table 3.2's networks, minibatch, K, grid, N and archive (threshold 1e-4,
-        # 10,000 FIFO slots: bench/qdpg_sweep.py's pick, variant "archive-table-3.2"); 100 gradient
-        # steps per iteration and Adam at QDax's rates per role; the largest equal budget for six
-        # methods that fits the notebook's time on 2 cores: 3e5 steps (and 1.05e5 per ant maze) ran
-        # 23 min on 2 cores, so 2e5 (and 5.5e4): 706 s measured with one seed, 727 s with QD-PG on
-        # Point-Maze on 2 seeds (issue 14: "if it fits"; 2 seeds for every method: about 23 min).
+        # small Point-Maze: Table 3.2's networks, minibatch, K, grid and archive (threshold 1e-4, 10,000
+        # FIFO slots), with N = 8 actors per iteration: bench/qdpg_sweep.py's pick, variant
+        # "table-3.2+actors-8" (round 2); 100 gradient steps per iteration and Adam at QDax's rates per
+        # role; the largest equal budget for six methods, in steps of 1e5, that fits the notebook's
+        # time on 2 cores (about 15 min), measured: see the notebook's small-rule cell (issue 14);
+        # QD-PG on Point-Maze on 2 seeds, the other methods on 1.
         "small": QDPGConfig(
             num_seeds=1, chunk_size=10, ant_methods=("QD-PG", "TD3"), pointmaze_qdpg_seeds=2,
-            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=200_000, optimizer="adam", learning_rate=3e-4,
-                                          mutation_learning_rate=1e-3, buffer_size=1_000_000, num_critic_steps=100,
-                                          num_pg_steps=100),
+            pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=300_000, num_actors=8, optimizer="adam",
+                                          learning_rate=3e-4, mutation_learning_rate=1e-3, buffer_size=1_000_000,
+                                          num_critic_steps=100, num_pg_steps=100),
             antmaze=ANT_SMALL,
             anttrap=ANT_SMALL),
         "paper": QDPGConfig(num_seeds=5, chunk_size=50, pointmaze=POINTMAZE_PAPER, antmaze=ANT_PAPER,
