@@ -13,7 +13,8 @@ extrapolated to the scale's budget), and as the notebook runs it, through
 ``run_seeds`` on the notebook's QD-PG seeds (``vmap``, jitted chunks) for the
 scale's whole budget, whose median chunk after the first is its rate, the
 statistic the notebook reports.  The notebook's rate should be within 15 %
-of it.
+of it.  The same run on one seed says what the ``vmap`` over seeds costs per
+seed (1.0: the seeds cost what they would one after the other).
 """
 
 from __future__ import annotations
@@ -84,13 +85,19 @@ def main() -> None:
 
     # Through run_seeds on the notebook's QD-PG seeds, with the notebook's statistic: the median
     # chunk after the first (which compiles).
-    seeds, chunks = cfg.seeds("pointmaze", "QD-PG"), []
-    start = time.perf_counter()
-    _, _, history = run_seeds(algo, jax.random.split(key, seeds), task.num_iterations - 1, cfg.chunk_size,
-                              progress=False, chunk_seconds=chunks)
-    jax.block_until_ready(history)
-    loop = time.perf_counter() - start
-    run_seeds_per_iteration = steady_rate(chunks, cfg.chunk_size, loop / task.num_iterations)
+    # The same on one seed: what the vmap over seeds costs per seed.
+    def through_run_seeds(num_seeds):
+        chunks = []
+        start = time.perf_counter()
+        _, _, history = run_seeds(algo, jax.random.split(key, num_seeds), task.num_iterations - 1, cfg.chunk_size,
+                                  progress=False, chunk_seconds=chunks)
+        jax.block_until_ready(history)
+        seconds = time.perf_counter() - start
+        return steady_rate(chunks, cfg.chunk_size, seconds / task.num_iterations), seconds
+
+    seeds = cfg.seeds("pointmaze", "QD-PG")
+    run_seeds_per_iteration, loop = through_run_seeds(seeds)
+    one_seed_per_iteration, _ = through_run_seeds(1) if seeds > 1 else (run_seeds_per_iteration, loop)
     # The steady rate: one compiled scan of the same iterations, timed on its second call.
     scan = jax.jit(lambda s: jax.lax.scan(lambda c, _: algo.step(c), s, None, length=args.iterations))
     jax.block_until_ready(scan(state))
@@ -125,6 +132,8 @@ def main() -> None:
         "run_seeds_iterations": task.num_iterations,
         "run_seeds_seconds_per_iteration": run_seeds_per_iteration,
         "run_seeds_over_steady": run_seeds_per_iteration / per_iteration,
+        "run_seeds_one_seed_seconds_per_iteration": one_seed_per_iteration,
+        "vmap_cost_per_seed_over_one_seed": run_seeds_per_iteration / (seeds * one_seed_per_iteration),
         "env_steps_per_second": env_steps / steady,
         "scale_budget_steps": task.num_steps,
         "projected_seconds_for_scale_budget": per_iteration * task.num_iterations,
