@@ -12,7 +12,6 @@ Writes ``bench/results/kernel_rate.json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -27,12 +26,11 @@ from qdnb.runner import execute
 from qdnb.scale import config
 
 CELL = """
-import dataclasses, json
+import json
 import jax
 from qdnb.rl.qdpg_experiment import run_environment
 from qdnb.scale import config
-cfg = config("ch3_qdpg", {scale!r})
-cfg = dataclasses.replace(cfg, pointmaze=dataclasses.replace(cfg.pointmaze, num_steps={steps}))
+cfg = config("ch3_qdpg", {scale!r}).with_pointmaze_iterations({iterations})
 out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",))
 with open({result!r}, "w") as f:
     json.dump(out["methods"]["QD-PG"]["steady_seconds_per_iteration"], f)
@@ -44,23 +42,20 @@ def main() -> None:
     parser.add_argument("--scale", default="small")
     parser.add_argument("--iterations", type=int, default=120)
     args = parser.parse_args()
-    cfg = config("ch3_qdpg", args.scale)
-    task = cfg.pointmaze
-    steps = args.iterations * task.num_actors * task.episode_length
+    cfg = config("ch3_qdpg", args.scale).with_pointmaze_iterations(args.iterations)
     rates = {}
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "rate.json"
         nb = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell(
-            CELL.format(scale=args.scale, steps=steps, result=str(result)))])
+            CELL.format(scale=args.scale, iterations=args.iterations, result=str(result)))])
         source = Path(tmp) / "rate.ipynb"
         nbformat.write(nb, source)
         execute(source, Path(tmp) / "rate.out.ipynb", {}, "kernel_rate", progress=False)
         rates["in a papermill kernel"] = json.loads(result.read_text())
-    small = dataclasses.replace(cfg, pointmaze=dataclasses.replace(task, num_steps=steps))
-    out = run_environment(small, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",))
+    out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",))
     rates["in this process"] = out["methods"]["QD-PG"]["steady_seconds_per_iteration"]
     record = {"scale": args.scale, "machine": platform.machine(), "cpu_count": os.cpu_count(),
-              "iterations": args.iterations, "seeds": cfg.seeds("pointmaze", "QD-PG"), "num_actors": task.num_actors,
+              "iterations": args.iterations, "seeds": cfg.seeds("pointmaze", "QD-PG"), "num_actors": cfg.pointmaze.num_actors,
               "seconds_per_iteration": rates,
               "kernel_over_process": rates["in a papermill kernel"] / rates["in this process"]}
     path = Path(__file__).parent / "results" / "kernel_rate.json"

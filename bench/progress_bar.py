@@ -12,7 +12,6 @@ Writes ``bench/results/progress_bar.json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -30,10 +29,7 @@ def main() -> None:
     parser.add_argument("--scale", default="small")
     parser.add_argument("--iterations", type=int, default=120)
     args = parser.parse_args()
-    cfg = config("ch3_qdpg", args.scale)
-    task = cfg.pointmaze
-    steps = args.iterations * task.num_actors * task.episode_length
-    cfg = dataclasses.replace(cfg, pointmaze=dataclasses.replace(task, num_steps=steps))
+    cfg = config("ch3_qdpg", args.scale).with_pointmaze_iterations(args.iterations)
     ways = {"no bar": (False, 0), "bar with the monitor thread": (True, 10), "bar without it": (True, 0)}
     rates = {}
     for name, (progress, interval) in ways.items():

@@ -220,6 +220,12 @@ class QDPGConfig:
         """This config with every method, QD-PG on Point-Maze included, on ``num_seeds`` seeds."""
         return dataclasses.replace(self, num_seeds=num_seeds, pointmaze_qdpg_seeds=None)
 
+    def with_pointmaze_iterations(self, iterations: int) -> "QDPGConfig":
+        """This config with a Point-Maze budget of ``iterations`` iterations (benchmarks)."""
+        task = self.pointmaze
+        steps = iterations * task.num_actors * task.episode_length
+        return dataclasses.replace(self, pointmaze=dataclasses.replace(task, num_steps=steps))
+
 
 QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
 

@@ -201,8 +201,8 @@ def test_qdpg_on_point_maze_runs_on_its_own_seed_count():
     other method (and QD-PG elsewhere) keeps ``num_seeds``; a count below one is
     refused."""
     tiny = config("ch3_qdpg", "tiny")
-    cfg = dataclasses.replace(tiny, pointmaze_qdpg_seeds=2,
-                              pointmaze=dataclasses.replace(tiny.pointmaze, num_steps=2 * 4 * 200))
+    cfg = dataclasses.replace(tiny.with_pointmaze_iterations(2), pointmaze_qdpg_seeds=2)
+    assert cfg.pointmaze.num_iterations == 2 and cfg.pointmaze.num_steps == 2 * 4 * 200
     assert cfg.seeds("pointmaze", "QD-PG") == 2 and cfg.seeds("pointmaze", "TD3") == 1
     assert cfg.seeds("antmaze", "QD-PG") == 1 and tiny.seeds("pointmaze", "QD-PG") == 1
     assert cfg.with_seeds(3).seeds("pointmaze", "QD-PG") == 3 and cfg.with_seeds(3).seeds("pointmaze", "TD3") == 3
