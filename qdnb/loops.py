@@ -22,19 +22,34 @@ def scan_in_chunks(
     """Apply ``carry, out = step(carry)`` ``num_steps`` times.
 
     Each chunk of ``chunk_size`` steps is one jitted ``lax.scan`` (compiled once);
-    the host only wakes up between chunks to move the progress bar.  Returns the
+    the host only wakes up between chunks to move the progress bar.  When
+    ``chunk_size`` does not divide ``num_steps``, every chunk runs one program
+    whose steps past ``num_steps`` are skipped (a ``lax.cond``), rather than
+    compiling a second program for the shorter last chunk.  Returns the
     final carry and the per-step outputs stacked along a leading axis.  When
     ``chunk_seconds`` is a list, the wall time of each chunk (the first one
     includes compilation) is appended to it.
     """
     if num_steps < 1 or chunk_size < 1:
         raise ValueError(f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}")
-    compiled: dict[int, Callable] = {}
+    if num_steps % chunk_size == 0:
+        @jax.jit
+        def chunk(c):
+            return jax.lax.scan(lambda c, _: step(c), c, None, length=chunk_size)
 
-    def run(n: int, c: Any):
-        if n not in compiled:
-            compiled[n] = jax.jit(lambda c: jax.lax.scan(lambda c, _: step(c), c, None, length=n))
-        return compiled[n](c)
+        run = lambda n, c: chunk(c)
+    else:
+        out_shape = jax.eval_shape(lambda c: step(c)[1], carry)
+        skip = lambda c: (c, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape))
+
+        def masked(c, n):
+            return jax.lax.scan(lambda c, i: jax.lax.cond(i < n, step, skip, c), c, jnp.arange(chunk_size))
+
+        chunk = jax.jit(masked)
+
+        def run(n: int, c: Any):
+            c, out = chunk(c, n)
+            return c, jax.tree.map(lambda x: x[:n], out)
 
     outputs = []
     with tqdm(total=num_steps, desc=desc, disable=not progress, mininterval=1.0) as bar:

@@ -22,3 +22,56 @@ def test_chunked_scan_equals_one_scan():
 def test_bad_lengths_are_errors():
     with pytest.raises(ValueError, match="positive"):
         scan_in_chunks(lambda c: (c, c), 0.0, 0, 3)
+
+
+def test_a_map_elites_run_compiles_its_simulation_once(caplog):
+    """The initial evaluation is the loop's first step: the whole run traces the
+    environment's step once and compiles one loop program, also when the chunk
+    size does not divide the number of iterations."""
+    import logging
+    from dataclasses import dataclass
+
+    import jax
+
+    from qdnb.envs.pointmaze import PointMaze
+    from qdnb.qd.algorithms import MapElites, PGAMapElites, run_seeds
+    from qdnb.qd.cvt import grid_centroids
+    from qdnb.rl.networks import MLP
+    from qdnb.rl.td3 import TD3Config
+
+    traces = []
+
+    @dataclass(frozen=True)
+    class CountingMaze(PointMaze):
+        def step(self, state, action):
+            traces.append(1)
+            return super().step(state, action)
+
+    env = CountingMaze(episode_length=20)
+    common = dict(env=env, network=MLP((4, 2)), batch_size=8, iso_sigma=0.1, line_sigma=0.2,
+                  centroids=grid_centroids((4, 4), (-1, -1), (1, 1)))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    for algo in (MapElites(**common), PGAMapElites(**common, td3_config=TD3Config(batch_size=8, critic_hidden=(8,)),
+                                                   num_critic_steps=2, num_pg_steps=2, buffer_size=2000)):
+        traces.clear()
+        states, _, history = run_seeds(algo, keys, 4, 5, progress=False)  # 5 evaluations, one chunk
+        assert len(traces) == 1, type(algo).__name__
+        assert history["coverage"].shape == (2, 5)
+        assert np.all(np.asarray(history["env_steps"]) == 8 * 20)  # the first step is the initial batch
+
+    caplog.set_level(logging.WARNING)
+    with jax.log_compiles():
+        run_seeds(MapElites(**common), keys, 6, 4, progress=False)  # 7 evaluations in chunks of 4: 4 + 3
+    compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling jit(")]
+    loops = [m for m in compiled if m.startswith(("Compiling jit(chunk)", "Compiling jit(masked)"))]
+    assert len(loops) == 1, compiled
+    assert not any(m.startswith("Compiling jit(init") for m in compiled)
+
+
+def test_a_remainder_chunk_gives_the_same_numbers_as_one_scan():
+    step = lambda c: (c * 1.5 + 1.0, {"c": c, "i": jnp.int32(1)})
+    carry, outs = scan_in_chunks(step, jnp.float32(0.0), 7, 5, progress=False)  # 5 + 2, one program
+    whole, outs_whole = scan_in_chunks(step, jnp.float32(0.0), 7, 7, progress=False)
+    np.testing.assert_array_equal(outs["c"], outs_whole["c"])
+    assert outs["i"].shape == (7,)
+    np.testing.assert_array_equal(carry, whole)

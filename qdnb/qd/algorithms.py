@@ -19,7 +19,11 @@ Chapter 4, on MapElites' selection and iso+line variation:
 
 Each has ``init(key) -> (state, evaluation)`` and ``step(state) -> (state,
 evaluation)``, pure functions ready for ``jit``, ``vmap`` over seeds and
-``lax.scan``.
+``lax.scan``.  The MAP-Elites family also has ``start(key) -> state``: an empty
+archive and the random first batch waiting in the state, so that its first
+``step`` is the initial evaluation and the whole run (``run_seeds``) is one
+compiled program: each step evaluates the waiting batch, inserts it, updates
+(PGA: replay buffer and critic, in QDax's order) and emits the next batch.
 """
 
 from __future__ import annotations
@@ -153,6 +157,7 @@ class NoveltySearch(PolicySearch):
 class MapElitesState:
     repertoire: Any  # a Repertoire, or a LowSpreadRepertoire for ME-LS
     key: jax.Array
+    offspring: Any = None  # the batch the next step evaluates
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,18 +185,26 @@ class MapElites(PolicySearch):
         archive, _ = rep_lib.insert(archive, genotypes, ev.fitness, ev.descriptor)
         return archive, ev
 
-    def init(self, key: jax.Array) -> tuple[MapElitesState, Evaluation]:
-        k_init, k_eval, key = jax.random.split(key, 3)
+    def start(self, key: jax.Array) -> MapElitesState:
+        """An empty archive and ``batch_size`` random policies waiting to be evaluated."""
+        k_init, key = jax.random.split(key)
         params = self.random_policies(k_init)
-        archive, ev = self.evaluate_and_insert(self.empty_archive(params), params, k_eval)
-        return MapElitesState(archive, key), ev
+        return MapElitesState(self.empty_archive(params), key, params)
+
+    def init(self, key: jax.Array) -> tuple[MapElitesState, Evaluation]:
+        """The state after the initial batch: ``step(start(key))``."""
+        return self.step(self.start(key))
+
+    def emit(self, state: MapElitesState, key: jax.Array) -> Any:
+        """The next batch: iso+line offspring of parents drawn uniformly from the elites."""
+        k_sel, k_vary = jax.random.split(key)
+        return self.vary(rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size), k_vary)
 
     def step(self, state: MapElitesState) -> tuple[MapElitesState, Evaluation]:
-        key, k_sel, k_vary, k_eval = jax.random.split(state.key, 4)
-        parents = rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size)
-        offspring = self.vary(parents, k_vary)
-        archive, ev = self.evaluate_and_insert(state.repertoire, offspring, k_eval)
-        return MapElitesState(archive, key), ev
+        key, k_eval, k_emit = jax.random.split(state.key, 3)
+        archive, ev = self.evaluate_and_insert(state.repertoire, state.offspring, k_eval)
+        state = state.replace(repertoire=archive, key=key)
+        return state.replace(offspring=self.emit(state, k_emit)), ev
 
     def metrics(self, state: MapElitesState) -> dict[str, jax.Array]:
         return qd_metrics(self.elites(state.repertoire), self.fitness_offset)
@@ -245,6 +258,7 @@ class PGAState:
     td3: TD3State
     buffer: ReplayBuffer
     key: jax.Array
+    offspring: Any = None  # the batch the next step evaluates
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,15 +289,16 @@ class PGAMapElites(MapElites):
     def num_pg(self) -> int:
         return int(self.batch_size * self.pg_proportion)
 
-    def init(self, key: jax.Array) -> tuple[PGAState, Evaluation]:
-        k_init, k_eval, k_td3, key = jax.random.split(key, 4)
+    def start(self, key: jax.Array) -> PGAState:
+        k_init, k_td3, key = jax.random.split(key, 3)
         params = self.random_policies(k_init)
-        archive, ev = self.evaluate_and_insert(self.empty_archive(params), params, k_eval)
         buffer = ReplayBuffer.create(self.buffer_size, self.env.observation_size, self.env.action_size)
-        return PGAState(archive, self.td3.init(k_td3), buffer.add_episodes(ev.trajectory, ev.fitness.ndim), key), ev
+        return PGAState(self.empty_archive(params), self.td3.init(k_td3), buffer, key, params)
 
-    def step(self, state: PGAState) -> tuple[PGAState, Evaluation]:
-        key, k_sel, k_pg, k_vary, k_critic, k_eval = jax.random.split(state.key, 6)
+    def emit(self, state: PGAState, key: jax.Array) -> Any:
+        """Half of the batch from ``num_pg_steps`` actor steps against the critic,
+        the rest iso+line, and the greedy actor."""
+        k_sel, k_pg, k_vary = jax.random.split(key, 3)
         td3 = self.td3
         parents = rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size)
         pg_parents = take(parents, jnp.arange(self.num_pg))
@@ -292,10 +307,19 @@ class PGAMapElites(MapElites):
         )(pg_parents, jax.random.split(k_pg, self.num_pg))
         ga_offspring = take(self.vary(parents, k_vary), jnp.arange(self.batch_size - self.num_pg - 1))
         greedy = jax.tree.map(lambda x: x[None], state.td3.actor)
-        offspring = concat(concat(pg_offspring, ga_offspring), greedy)
-        td3_state, _ = td3.train_critic(state.td3, state.buffer, k_critic, self.num_critic_steps)
-        archive, ev = self.evaluate_and_insert(state.repertoire, offspring, k_eval)
-        return PGAState(archive, td3_state, state.buffer.add_episodes(ev.trajectory, ev.fitness.ndim), key), ev
+        return concat(concat(pg_offspring, ga_offspring), greedy)
+
+    def step(self, state: PGAState) -> tuple[PGAState, Evaluation]:
+        """Evaluate and insert the waiting batch, store its transitions, train the
+        critic on the buffer, then emit the next batch with that critic (QDax's
+        order: the initial batch's transitions train the critic before the first
+        policy-gradient offspring)."""
+        key, k_eval, k_critic, k_emit = jax.random.split(state.key, 4)
+        archive, ev = self.evaluate_and_insert(state.repertoire, state.offspring, k_eval)
+        buffer = state.buffer.add_episodes(ev.trajectory, ev.fitness.ndim)
+        td3_state, _ = self.td3.train_critic(state.td3, buffer, k_critic, self.num_critic_steps)
+        state = PGAState(archive, td3_state, buffer, key)
+        return state.replace(offspring=self.emit(state, k_emit)), ev
 
 
 @dataclass(frozen=True, eq=False)
@@ -345,16 +369,25 @@ def run_seeds(
             out.update(descriptors=ev.descriptor, fitnesses=ev.fitness)
         return track, out
 
-    def init(key):
-        state, ev = algorithm.init(key)
-        track = None if track_bins is None else ExplorationTrack.create(math.prod(track_bins))
-        track, out = record(state, track, ev)
-        return (state, track), out
-
     def step(carry):
         state, track = carry
         state, ev = algorithm.step(state)
         track, out = record(state, track, ev)
+        return (state, track), out
+
+    new_track = lambda: None if track_bins is None else ExplorationTrack.create(math.prod(track_bins))
+    if getattr(algorithm, "start", None) is not None:
+        # the initial evaluation is the first step: one compiled program for the whole loop
+        carry = jax.jit(jax.vmap(lambda k: (algorithm.start(k), new_track())))(keys)
+        (states, tracks), history = scan_in_chunks(
+            jax.vmap(step), carry, num_iterations + 1, chunk_size, desc=desc, progress=progress,
+            chunk_seconds=chunk_seconds,
+        )
+        return states, tracks, jax.tree.map(lambda h: jnp.swapaxes(h, 0, 1), history)
+
+    def init(key):
+        state, ev = algorithm.init(key)
+        track, out = record(state, new_track(), ev)
         return (state, track), out
 
     carry, first = jax.jit(jax.vmap(init))(keys)

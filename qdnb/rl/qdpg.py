@@ -97,6 +97,8 @@ class QDPG(MapElites):
         if self.update not in UPDATES:
             raise ValueError(f"unknown update {self.update!r}; valid: {', '.join(UPDATES)}")
 
+    start = None  # QD-PG evaluates its initial batch in ``init`` (run_seeds then compiles init and step)
+
     @property
     def td3(self) -> TD3:
         return TD3(self.network, self.env.observation_size, self.env.action_size, self.td3_config)
