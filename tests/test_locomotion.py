@@ -88,3 +88,55 @@ def test_loading_models_from_threads_leaves_stdout_and_stderr_alone():
         list(pool.map(lambda name: make_env(name), ["ant_omni", "halfcheetah_uni"] * 2))
     after = [os.fstat(fd) for fd in (1, 2)]
     assert [(s.st_dev, s.st_ino) for s in after] == [(s.st_dev, s.st_ino) for s in before]
+
+
+def test_ant_omni_ends_when_the_torso_leaves_its_healthy_band(ant):
+    sys = ant.brax_env.sys
+    zero = jnp.zeros(ant.action_size)
+    step = jax.jit(ant.step)
+    at_height = lambda z: ant.state_at(sys.init_q.at[2].set(z), jnp.zeros(sys.qd_size()))
+    assert bool(ant.healthy(at_height(0.75).core))
+    assert not bool(ant.healthy(at_height(0.1).core))  # lying on the floor
+    assert not bool(ant.healthy(at_height(1.5).core))  # in the air
+    assert not bool(step(at_height(0.75), zero).done)  # standing: the episode goes on
+    assert bool(step(at_height(1.5), zero).done)  # one step later it is still above 1.0: the episode ends
+    # in a rollout, the steps after the end do not count
+    from qdnb.envs.rollout import tally_start, tally_step
+
+    start = at_height(1.5)
+    tally, _ = tally_step(ant, tally_start(ant, start), step(start, zero))
+    assert not bool(tally.alive) and int(tally.length) == 1
+
+
+def test_resets_follow_brax_v1_uniform_joint_noise_with_the_root_at_rest(ant, cheetah):
+    for env, root_q, root_qd in ((ant, 7, 6), (cheetah, 3, 3)):
+        sys = env.brax_env.sys
+        states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 256))
+        dq = np.asarray(states.core.q) - np.asarray(sys.init_q)
+        qd = np.asarray(states.core.qd)
+        np.testing.assert_allclose(dq[:, :root_q], 0.0, atol=1e-6)
+        np.testing.assert_allclose(qd[:, :root_qd], 0.0, atol=1e-6)
+        for x in (dq[:, root_q:], qd[:, root_qd:]):
+            assert np.all(np.abs(x) <= 0.1 + 1e-6)
+            assert np.abs(x).max() > 0.09  # uniform on [-0.1, 0.1]: its edges are reached ...
+            assert abs(np.mean(np.abs(x)) - 0.05) < 0.005  # ... and E|U| = 0.05 (a Gaussian of sd 0.1 gives 0.08)
+
+
+def test_ant_omni_observes_neither_x_nor_y(ant):
+    sys = ant.brax_env.sys
+    here = ant.state_at(sys.init_q, jnp.zeros(sys.qd_size()))
+    there = ant.state_at(sys.init_q.at[:2].set(jnp.array([3.0, -4.0])), jnp.zeros(sys.qd_size()))
+    assert ant.observation_size == 27
+    np.testing.assert_allclose(here.obs, there.obs, atol=1e-6)
+    np.testing.assert_allclose(there.state_descriptor, [3.0, -4.0], atol=1e-5)
+
+
+def test_a_bounded_box_clips_descriptors_and_holds_cells_and_goals():
+    from qdnb.qd.cvt import cvt_centroids
+
+    env = make_env("ant_omni", episode_length=12, descriptor_low=(-2.5, -2.5), descriptor_high=(2.5, 2.5))
+    np.testing.assert_allclose(env.behaviour_descriptor(jnp.array([4.0, -1.0]), None, 12), [2.5, -1.0])
+    centroids = np.asarray(cvt_centroids(jax.random.PRNGKey(0), 16, env.descriptor_low, env.descriptor_high, 2000, 5))
+    assert np.all(np.abs(centroids) <= 2.5) and np.abs(centroids).max() > 1.0
+    with pytest.raises(ValueError, match="low < high"):
+        make_env("ant_omni", descriptor_low=(1.0, 1.0), descriptor_high=(0.0, 2.0))

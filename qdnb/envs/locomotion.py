@@ -5,18 +5,34 @@ default: the fastest on CPU here; any brax backend can be chosen) into qdnb's
 ``Env`` interface, with 250-step episodes and the thesis's own fitness and
 behaviour descriptor:
 
-- ``ant_omni``: descriptor = final torso (x, y) clipped to [-15, 15]^2, reward at
-  each step = -||a_t||_2, so the fitness is -sum_t ||a_t||_2 (Eq. 4.2).  The
-  observation includes the torso position, and the episode never ends early.
+- ``ant_omni``: descriptor = final torso (x, y) clipped to the descriptor box
+  (``descriptor_low``/``descriptor_high``: [-15, 15]^2 in the thesis, a smaller
+  measured box at small scales), reward at each step = -||a_t||_2, so the fitness
+  is -sum_t ||a_t||_2 (Eq. 4.2).
 - ``halfcheetah_uni``: descriptor = fraction of steps each foot (back, front)
   touches the ground, reward = (x_t - x_{t-1}) / dt - ||a_t||_2 (Eq. 4.3).
   Contacts are the simulator's own: a foot touches the ground when one of its
   contact points with the floor has a negative distance (penetration).
 
-Initial states are the model's initial pose with Gaussian noise (standard
-deviation ``reset_noise``) on joint positions and on all velocities (not on the
-free joint's orientation quaternion), so episodes of one deterministic policy
-differ only by their start.
+Where the thesis is silent, the tasks follow the QDax tasks the thesis ran
+(``ant_omni`` and ``halfcheetah_uni`` of ``qdax/tasks/brax/v1``, on brax v1's Ant
+and Halfcheetah):
+
+- **termination**: an Ant-Omni episode ends when the torso's height leaves the
+  healthy band [0.2, 1.0] (brax's ``healthy_z_range``: the ant flipped or
+  jumped); its descriptor is then where it was at that step.  Halfcheetah-Uni
+  never ends early.
+- **initial states** (``QDaxReset``): the model's rest pose, each hinge joint's
+  angle and velocity moved by U(-0.1, 0.1); the free (Ant) or planar
+  (Halfcheetah) root joint starts at rest, where the model puts it.
+- **observations**: the torso's height, orientation and velocities, the joint
+  angles and velocities, and not the torso's x, y (brax's
+  ``exclude_current_positions_from_observation``): 27 numbers for the Ant,
+  17 for the Halfcheetah (brax v1 gives it 18: the pitch as two quaternion
+  components instead of one angle).
+
+Chapter 3's ant mazes (``qdnb.envs.mazes``) keep ``BraxTask``'s own Gaussian
+reset (``reset_noise`` on positions and velocities), as their reference code does.
 """
 
 from __future__ import annotations
@@ -119,25 +135,53 @@ class BraxTask(Env):
         return self.brax_env._get_obs(pipeline_state)  # brax's own observation
 
 
+class QDaxReset:
+    """brax v1's reset, which QDax's tasks use: the rest pose, with every hinge
+    joint's angle and velocity moved by U(-``reset_noise``, ``reset_noise``); the
+    first ``root_q`` positions and ``root_qd`` velocities (the root joint) at rest."""
+
+    root_q: int
+    root_qd: int
+
+    def reset(self, key: jax.Array) -> EnvState:
+        sys = self.brax_env.sys
+        k_q, k_qd = jax.random.split(key)
+        u = lambda k, n: jax.random.uniform(k, (n,), minval=-self.reset_noise, maxval=self.reset_noise)
+        q = sys.init_q.at[self.root_q:].add(u(k_q, sys.q_size() - self.root_q))
+        qd = jnp.zeros(sys.qd_size()).at[self.root_qd:].set(u(k_qd, sys.qd_size() - self.root_qd))
+        return self.state_at(q, qd)
+
+
 @dataclass(frozen=True, eq=False)
-class AntOmni(BraxTask):
+class AntOmni(QDaxReset, BraxTask):
     """Ant-Omni (Eq. 4.2): go anywhere on the plane, spending little energy."""
 
     descriptor_size: int = 2
     descriptor_low: tuple[float, ...] = (-15.0, -15.0)
     descriptor_high: tuple[float, ...] = (15.0, 15.0)
+    healthy_z_range: tuple[float, float] = (0.2, 1.0)
+    root_q: int = 7  # the free joint: position (3) and quaternion (4)
+    root_qd: int = 6
 
     def __post_init__(self):
-        env = _brax_env("ant", self.backend, exclude_current_positions_from_observation=False,
-                        terminate_when_unhealthy=False)
+        if len(self.descriptor_low) != 2 or len(self.descriptor_high) != 2 or \
+                not all(lo < hi for lo, hi in zip(self.descriptor_low, self.descriptor_high)):
+            raise ValueError(f"the descriptor box needs two bounds per axis with low < high, got "
+                             f"{self.descriptor_low} and {self.descriptor_high}")
+        env = _brax_env("ant", self.backend, exclude_current_positions_from_observation=True,
+                        terminate_when_unhealthy=False)  # termination is ours, in ``step``
         object.__setattr__(self, "brax_env", env)
         object.__setattr__(self, "observation_size", env.observation_size)
         object.__setattr__(self, "action_size", env.action_size)
 
-    def _noise_mask(self) -> np.ndarray:
-        mask = np.ones(self.brax_env.sys.q_size(), np.float32)
-        mask[3:7] = 0.0  # free joint quaternion
-        return mask
+    def healthy(self, pipeline_state) -> jax.Array:
+        """Whether the torso's height is inside ``healthy_z_range`` (brax's rule)."""
+        z = pipeline_state.x.pos[0, 2]
+        return (z >= self.healthy_z_range[0]) & (z <= self.healthy_z_range[1])
+
+    def step(self, state: EnvState, action: jax.Array) -> EnvState:
+        nxt = super().step(state, action)
+        return nxt.replace(done=nxt.done | ~self.healthy(nxt.core))
 
     def _state_descriptor(self, pipeline_state) -> jax.Array:
         return pipeline_state.x.pos[0, :2]  # torso (x, y)
@@ -152,13 +196,15 @@ class AntOmni(BraxTask):
 
 
 @dataclass(frozen=True, eq=False)
-class HalfcheetahUni(BraxTask):
+class HalfcheetahUni(QDaxReset, BraxTask):
     """Halfcheetah-Uni (Eq. 4.3): run forward fast and cheaply, gaits as descriptors."""
 
     descriptor_size: int = 2
     descriptor_low: tuple[float, ...] = (0.0, 0.0)
     descriptor_high: tuple[float, ...] = (1.0, 1.0)
     feet: tuple[str, ...] = ("bfoot", "ffoot")
+    root_q: int = 3  # the planar root: x, z, pitch
+    root_qd: int = 3
 
     def __post_init__(self):
         import mujoco
