@@ -95,3 +95,42 @@ def test_run_environments_rejects_unknown_environments_before_computing():
     cfg = dataclasses.replace(scale.config("ch4_reproducibility", "tiny"), environments=("ant_omni", "antmaze_typo"))
     with pytest.raises(ValueError, match="antmaze_typo"):
         run_environments(cfg, jax.random.PRNGKey(0))
+
+
+def test_reach_bound_is_the_rounded_up_quantile_of_the_largest_coordinate():
+    from qdnb.qd.reproducibility import reach_bound
+
+    # 100 points whose larger |coordinate| is 0.1, 0.2, ..., 10.0 (on either axis, either sign)
+    r = np.arange(1, 101) / 10.0
+    points = np.stack([np.where(np.arange(100) % 2, r, -0.5 * r), np.where(np.arange(100) % 2, 0.3 * r, -r)], 1)
+    assert reach_bound(points, quantile=0.95, step=0.5) == 10.0  # the 95th percentile, 9.505, rounded up
+    assert reach_bound(points, quantile=0.9, step=0.5) == 9.5  # 9.01 -> 9.5
+    assert reach_bound(points, quantile=1.0, step=0.5) == 10.0
+    assert reach_bound(points, quantile=0.5, step=1.0) == 6.0  # median 5.05, rounded up to a whole metre
+    assert reach_bound(np.array([[0.01, 0.0], [np.nan, 1.0]])) == 0.5  # never below one step; NaN rows ignored
+    with pytest.raises(ValueError):
+        reach_bound(np.zeros((0, 2)))
+
+
+def test_cells_for_coverage_takes_the_largest_count_that_fills():
+    from qdnb.qd.reproducibility import cells_for_coverage
+
+    coverage = {32: np.array([[0.9, 0.8, 0.85], [0.82, 0.8, 0.9]]),  # (methods, seeds)
+                64: np.array([[0.9, 0.9, 0.9], [0.7, 0.8, 0.8]]),  # the second method misses 0.8 on the mean
+                128: np.array([[0.5, 0.5, 0.5], [0.3, 0.3, 0.3]])}
+    assert cells_for_coverage(coverage) == 32
+    assert cells_for_coverage(coverage, target=0.7) == 64
+    assert cells_for_coverage(coverage, target=0.95) == 32  # none fills: the smallest count
+
+
+def test_descriptor_box_is_a_config_of_the_task():
+    import dataclasses
+
+    from qdnb.scale import config
+
+    paper, small = config("ch4_reproducibility", "paper"), config("ch4_reproducibility", "small")
+    assert paper.make_env("ant_omni").descriptor_high == (15.0, 15.0)
+    assert small.make_env("ant_omni").descriptor_low == (-small.ant_omni_box,) * 2 and small.ant_omni_box < 15
+    assert small.make_env("halfcheetah_uni").descriptor_high == (1.0, 1.0)
+    with pytest.raises(ValueError, match="ant_omni_box"):
+        dataclasses.replace(small, ant_omni_box=0.0)

@@ -59,6 +59,37 @@ def fitness_offset(env_name: str, episode_length: int) -> float:
     raise ValueError(f"no fitness offset for {env_name!r}")
 
 
+REACH_QUANTILE = 0.95  # the box holds this share of the pilot's elites ...
+REACH_STEP = 0.5  # ... rounded up to a multiple of this (metres)
+COVERAGE_TARGET = 0.8
+
+
+def reach_bound(descriptors: np.ndarray, quantile: float = REACH_QUANTILE, step: float = REACH_STEP) -> float:
+    """The half-width ``b`` of the smallest box [-b, b]^2, ``b`` a multiple of
+    ``step``, holding at least the ``quantile`` share of ``descriptors`` (the
+    ``(n, 2)`` final positions of every elite of a pilot run, all methods and
+    seeds pooled): the thesis's rule for Ant-Omni's box ("methods ... tend to
+    produce solutions within this range"), applied to a smaller budget."""
+    d = np.asarray(descriptors, np.float64).reshape(-1, 2)
+    d = d[np.all(np.isfinite(d), axis=1)]
+    if d.size == 0:
+        raise ValueError("no descriptors to bound")
+    if not 0 < quantile <= 1 or step <= 0:
+        raise ValueError(f"quantile must be in (0, 1] and step positive, got {quantile} and {step}")
+    reach = np.quantile(np.max(np.abs(d), axis=1), quantile)
+    return float(max(np.ceil(reach / step - 1e-9), 1) * step)
+
+
+def cells_for_coverage(coverage: dict[int, np.ndarray], target: float = COVERAGE_TARGET) -> int:
+    """The largest cell count whose measured coverage (``coverage[k]``: one value
+    per method and seed of a pilot run on the bounded space) reaches ``target``
+    for every method on the mean over seeds; the smallest count when none does."""
+    if not coverage:
+        raise ValueError("no cell counts measured")
+    full = [k for k, c in coverage.items() if np.min(np.mean(np.atleast_2d(c), axis=-1)) >= target]
+    return max(full) if full else min(coverage)
+
+
 def build_algorithms(cfg: ReproducibilityConfig, env: Env, network: MLP, centroids: jax.Array,
                      offset: float) -> dict[str, MapElites]:
     """The five methods with the hyper-parameters of Tables 4.1 and 4.2."""
@@ -155,7 +186,7 @@ def run_environment(cfg: ReproducibilityConfig, env_name: str, key: jax.Array, p
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(METHODS)}")
-    env = make_env(env_name, episode_length=cfg.episode_length)
+    env = cfg.make_env(env_name)
     network = MLP(cfg.policy_hidden + (env.action_size,))
     k_cvt, k_goals, k_run, k_acc, k_re, k_rep = jax.random.split(key, 6)
     low, high = env.descriptor_low, env.descriptor_high

@@ -42,7 +42,7 @@ def run_environment(cfg: QDTConfig, repro_cfg: ReproducibilityConfig, env_name: 
     are the Chapter 4 repertoires (stacked over its seeds); QDT seed ``i`` uses
     repertoire seed ``i`` (cycling when the Chapter 4 run has fewer seeds)."""
     task = cfg.task(env_name)
-    env = make_env(env_name, episode_length=repro_cfg.episode_length)
+    env = repro_cfg.make_env(env_name)
     network = MLP(repro_cfg.policy_hidden + (env.action_size,))
     low, high = env.descriptor_low, env.descriptor_high
     k_zones, k_goals, k_seeds = jax.random.split(key, 3)
