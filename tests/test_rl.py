@@ -85,11 +85,12 @@ def test_pga_me_and_pga_me_ls_iterate_fill_the_buffer_and_train_the_critic():
     for algo, episodes in [(PGAMapElites(**common), 1), (PGAMapElitesLowSpread(**common, num_episodes=2), 2)]:
         state, ev = jax.jit(algo.init)(jax.random.PRNGKey(0))
         assert int(state.buffer.size) == int(ev.length.sum())  # every valid transition, no more
+        assert int(state.td3.steps) == 4  # the initial batch trains the critic before the first emission
         step = jax.jit(algo.step)
         state2, ev2 = step(state)
         assert ev2.fitness.shape == ((6,) if episodes == 1 else (6, 2))
         assert int(state2.buffer.size) == int(ev.length.sum() + ev2.length.sum())
-        assert int(state2.td3.steps) == 4
+        assert int(state2.td3.steps) == 8  # num_critic_steps more per step
         critic_moved = jax.tree.leaves(jax.tree.map(lambda a, b: jnp.abs(a - b).max(), state.td3.critic, state2.td3.critic))
         assert max(float(x) for x in critic_moved) > 0
         assert bool(algo.elites(state2.repertoire).filled.any())
