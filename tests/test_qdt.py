@@ -240,6 +240,9 @@ def test_fit_and_the_config_reject_bad_settings():
         dataclasses.replace(tiny, environments=("ant_omni", "antmaze"))
     with pytest.raises(ValueError, match="unknown environment"):
         tiny.task("pointmaze")
+    for bad in (0, tiny.num_seeds + 1):
+        with pytest.raises(ValueError, match="full_seeds"):
+            dataclasses.replace(tiny, full_seeds=bad)
     with pytest.raises(ValueError, match="unknown scale"):
         config("ch4_qdt", "nope")
 
