@@ -20,9 +20,10 @@ $(VENV)/.installed: requirements.lock pyproject.toml
 book: venv
 	$(BIN)/python -m qdnb book --scale $(SCALE) --seed $(SEED)
 
-## Unit tests, then every notebook at tiny scale.
+## Every notebook at tiny scale and the unit tests, on two workers (pytest-xdist):
+## the notebooks run in order on one, the unit test files share the other.
 test: venv
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
 
 ## Throughput benchmarks (JSON in bench/results/); not part of the tests.
 bench: venv
