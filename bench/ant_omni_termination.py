@@ -32,14 +32,14 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import traverse_util
 
 from qdnb import paths
 from qdnb.envs import make_env
 from qdnb.provenance import device, git_sha, versions
-from qdnb.qd.reproducibility import METHODS
+from qdnb.qd.reproducibility import METHODS, load_repertoires
+from qdnb.qdt.data import repertoire_path
 from qdnb.rl.networks import MLP
-from qdnb.scale import config
+from qdnb.scale import config, config_hash
 
 
 def height_path(env, network, params, key, terminate: bool = True):
@@ -67,14 +67,15 @@ def elites(scale: str, episodes: int, key: jax.Array) -> dict:
     env = cfg.make_env("ant_omni")
     network = MLP(cfg.policy_hidden + (env.action_size,))
     play = jax.jit(jax.vmap(lambda p, k: height_path(env, network, p, k)))
-    run_dir = paths.run_dir(scale, "ch4_reproducibility", create=False)
     out = {}
     for name in METHODS:
-        arrays = np.load(run_dir / f"repertoire_ant_omni_{name}.npz")
-        flat = {k[len("genotype/"):]: arrays[k] for k in arrays.files if k.startswith("genotype/")}
-        genotypes = traverse_util.unflatten_dict(flat, sep="/")
+        path = repertoire_path(scale, "ant_omni", name)
+        arrays = load_repertoires(path, config_hash(cfg))
+        if arrays is None:
+            raise SystemExit(f"{path} is missing or from another config: run the Chapter 4 notebook at {scale} first")
         seeds, cells = np.nonzero(np.isfinite(arrays["fitnesses"]))
-        params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x[seeds, cells]), episodes, axis=0), genotypes)
+        params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x[seeds, cells]), episodes, axis=0),
+                              arrays["genotypes"])
         end, above, below, fitness = map(np.asarray, play(params, jax.random.split(jax.random.fold_in(key, len(out)),
                                                                                       seeds.size * episodes)))
         early = end < env.episode_length
@@ -85,6 +86,7 @@ def elites(scale: str, episodes: int, key: jax.Array) -> dict:
                      "fitness_full": float(fitness[~early].mean()) if (~early).any() else None,
                      "elites_with_an_early_end": float(early.reshape(-1, episodes).any(1).mean())}
         print(name, out[name], flush=True)
+    run_dir = paths.run_dir(scale, "ch4_reproducibility", create=False)
     return {"run": str(run_dir.relative_to(paths.ROOT)), "episodes_per_elite": episodes, "methods": out}
 
 
