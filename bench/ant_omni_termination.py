@@ -2,9 +2,13 @@
 Chapter 4 run (issue 15).
 
 Ant-Omni follows QDax's task where the thesis is silent, so an episode ends when
-the torso leaves the healthy band [0.2, 1.0]; the fitness is the thesis's Eq. 4.2,
--sum_t ||a_t|| over the steps played.  An episode that ends early therefore
-spends less energy.  This script measures how often that happens and why:
+the torso leaves the healthy band [0.2, 1.0].  With the thesis's Eq. 4.2 alone,
+-sum_t ||a_t|| over the steps played, an episode that ends early spends less
+energy and scores higher; the first record of this script (commit 743cd22) found
+56-71 % of the elites' episodes ending early.  The task now keeps brax's survival
+reward, as QDax's does (``qdnb.envs.locomotion``): an episode that ends early
+forfeits one per step not lived.  This script measures how often episodes end
+early and why:
 
 1. **Elites.**  Every stored policy of the final Ant-Omni repertoires that the
    Chapter 4 notebook saved at the scale (all methods, all seeds) plays
@@ -59,7 +63,7 @@ def height_path(env, network, params, key, terminate: bool = True):
 
     init = (state, jnp.int32(-1), jnp.float32(-jnp.inf), jnp.float32(jnp.inf), jnp.float32(0.0))
     (_, end, z_max, z_min, fitness), _ = jax.lax.scan(body, init, None, length=env.episode_length)
-    return end, z_max > high, z_min < low, fitness
+    return end, z_max > high, z_min < low, fitness + env.fitness_shift
 
 
 def elites(scale: str, episodes: int, key: jax.Array) -> dict:

@@ -108,6 +108,30 @@ def test_ant_omni_ends_when_the_torso_leaves_its_healthy_band(ant):
     assert not bool(tally.alive) and int(tally.length) == 1
 
 
+def test_ant_omni_survival_reward_makes_an_early_end_cost_one_per_step_not_lived(ant):
+    """QDax's Ant pays 1 per step alive; the fitness takes the full episode's 12 back:
+    Eq. 4.2 for a full episode, and an episode that ends after 1 step of action a
+    scores -||a|| - 11 (falling is never cheaper than standing still)."""
+    from qdnb.envs.rollout import tally_evaluation, tally_start, tally_step
+
+    sys = ant.brax_env.sys
+    action = jnp.full(ant.action_size, 0.5)  # ||a|| = sqrt(8) / 2
+    step = jax.jit(ant.step)
+    standing = ant.state_at(sys.init_q, jnp.zeros(sys.qd_size()))
+    np.testing.assert_allclose(step(standing, action).reward, 1.0 - np.sqrt(2.0), rtol=1e-6)
+
+    flying = ant.state_at(sys.init_q.at[2].set(1.5), jnp.zeros(sys.qd_size()))
+    tally = tally_start(ant, flying)
+    state = flying
+    for _ in range(ant.episode_length):  # the steps after the first do not count
+        state = step(state, action)
+        tally, _ = tally_step(ant, tally, state)
+    ev = tally_evaluation(ant, jax.tree.map(lambda x: x[None], tally))
+    assert int(ev.length[0]) == 1
+    np.testing.assert_allclose(ev.fitness[0], -np.sqrt(2.0) - (ant.episode_length - 1), rtol=1e-6)
+    assert float(ev.fitness[0]) < 0.0  # standing still with no torque for the whole episode scores 0
+
+
 def test_resets_follow_brax_v1_uniform_joint_noise_with_the_root_at_rest(ant, cheetah):
     for env, root_q, root_qd in ((ant, 7, 6), (cheetah, 3, 3)):
         sys = env.brax_env.sys

@@ -46,6 +46,10 @@ class Env:
     # How an episode's fitness is read from its rewards: "return" (their sum) or
     # "max_reward" (the best single reward, Ant-Maze's performance, Section 3.6.1).
     fitness_mode: str = "return"
+    # A constant added to an episode's return to give its fitness ("return" mode only):
+    # Ant-Omni's survival reward, paid to TD3 at every step, is taken back from the fitness,
+    # so that a full episode's fitness is exactly the thesis's Eq. 4.2.
+    fitness_shift: float = 0.0
 
     def reset(self, key: jax.Array) -> EnvState:
         raise NotImplementedError

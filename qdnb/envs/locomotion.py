@@ -7,8 +7,8 @@ behaviour descriptor:
 
 - ``ant_omni``: descriptor = final torso (x, y) clipped to the descriptor box
   (``descriptor_low``/``descriptor_high``: [-15, 15]^2 in the thesis, a smaller
-  measured box at small scales), reward at each step = -||a_t||_2, so the fitness
-  is -sum_t ||a_t||_2 (Eq. 4.2).
+  measured box at small scales), fitness -sum_t ||a_t||_2 (Eq. 4.2) for an episode
+  that lasts its 250 steps; see the survival reward below for one that ends early.
 - ``halfcheetah_uni``: descriptor = fraction of steps each foot (back, front)
   touches the ground, reward = (x_t - x_{t-1}) / dt - ||a_t||_2 (Eq. 4.3).
   Contacts are the simulator's own: a foot touches the ground when one of its
@@ -22,6 +22,15 @@ and Halfcheetah):
   healthy band [0.2, 1.0] (brax's ``healthy_z_range``: the ant flipped or
   jumped); its descriptor is then where it was at that step.  Halfcheetah-Uni
   never ends early.
+- **survival reward**: brax's Ant, which QDax's ``ant_omni`` keeps (it removes
+  only the forward term), pays 1 per step alive.  Without it, termination would
+  reward falling: -sum ||a_t|| over fewer steps is a higher fitness, and on the
+  spring pipeline more than half of the elites' episodes ended early that way
+  (``bench/ant_omni_termination.py``), against the thesis's "an optimal policy
+  would simply remain static".  So the step reward is 1 - ||a_t||_2 (what TD3
+  learns from, as in QDax) and the fitness takes the constant 250 back
+  (``fitness_shift``): Eq. 4.2 exactly for a full episode, Eq. 4.2 minus one per
+  step not lived for one that ends early.
 - **initial states** (``QDaxReset``): the model's rest pose, each hinge joint's
   angle and velocity moved by U(-0.1, 0.1); the free (Ant) or planar
   (Halfcheetah) root joint starts at rest, where the model puts it.
@@ -160,6 +169,7 @@ class AntOmni(QDaxReset, BraxTask):
     descriptor_low: tuple[float, ...] = (-15.0, -15.0)
     descriptor_high: tuple[float, ...] = (15.0, 15.0)
     healthy_z_range: tuple[float, float] = (0.2, 1.0)
+    survive_reward: float = 1.0
     root_q: int = 7  # the free joint: position (3) and quaternion (4)
     root_qd: int = 6
 
@@ -186,9 +196,14 @@ class AntOmni(QDaxReset, BraxTask):
     def _state_descriptor(self, pipeline_state) -> jax.Array:
         return pipeline_state.x.pos[0, :2]  # torso (x, y)
 
+    @property
+    def fitness_shift(self) -> float:
+        """The survival reward of a full episode, taken back from the return."""
+        return -self.survive_reward * self.episode_length
+
     def _reward(self, before, after, action) -> jax.Array:
         del before, after
-        return -jnp.linalg.norm(action)
+        return self.survive_reward - jnp.linalg.norm(action)
 
     def behaviour_descriptor(self, last_state_descriptor, state_descriptor_sum, length):
         del state_descriptor_sum, length

@@ -17,8 +17,9 @@ PolicyApply = Callable[[Any, jax.Array], jax.Array]
 class Evaluation:
     """What one episode (or a batch of them, with leading axes) returns.
 
-    ``fitness`` is the episode return (or its best reward, for environments
-    whose ``fitness_mode`` is ``"max_reward"``), ``descriptor`` the behaviour descriptor,
+    ``fitness`` is the episode return plus the environment's constant
+    ``fitness_shift`` (or its best reward, for environments whose
+    ``fitness_mode`` is ``"max_reward"``), ``descriptor`` the behaviour descriptor,
     ``length`` the number of steps before the episode ended.  ``trajectory`` is
     ``None`` unless asked for: then a dict of per-step ``obs``, ``action``,
     ``reward``, ``next_obs``, ``done``, ``state_descriptor``,
@@ -125,7 +126,8 @@ def tally_step(env: Env, tally: Tally, nxt: EnvState) -> tuple[Tally, jax.Array]
 
 def tally_evaluation(env: Env, tally: Tally, trajectory: Any = None) -> Evaluation:
     """The ``Evaluation`` of a batch of finished tallies."""
-    return Evaluation(fitness=tally.fitness,
+    fitness = tally.fitness + env.fitness_shift if env.fitness_mode == "return" else tally.fitness
+    return Evaluation(fitness=fitness,
                       descriptor=jax.vmap(env.behaviour_descriptor)(tally.last_sd, tally.sd_sum, tally.length),
                       length=tally.length, trajectory=trajectory)
 
