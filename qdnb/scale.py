@@ -373,7 +373,7 @@ _CONFIGS: dict[str, dict[str, object]] = {
     },
     "ch4_reproducibility": {
         "tiny": ReproducibilityConfig(
-            num_seeds=1, num_iterations=3, env_batch=16, num_episodes=4, num_cells=32, chunk_size=4,
+            num_seeds=1, num_iterations=3, env_batch=16, num_episodes=4, num_cells=16, chunk_size=4,
             episode_length=50, policy_hidden=(16, 16), critic_hidden=(32, 32), num_critic_steps=10,
             num_pg_steps=5, td3_batch_size=32, buffer_size=20_000, cvt_samples=2_000, cvt_iterations=10,
             ant_omni_goals=10, halfcheetah_uni_goals=8, accuracy_episodes=3, reassess_episodes=3,
@@ -382,7 +382,7 @@ _CONFIGS: dict[str, dict[str, object]] = {
             num_seeds=3, num_iterations=8, env_batch=64, num_episodes=4, num_cells=16, chunk_size=3,
             policy_hidden=(64, 64), critic_hidden=(64, 64), num_critic_steps=150, num_pg_steps=50,
             td3_batch_size=128, buffer_size=100_000, cvt_samples=20_000, accuracy_episodes=5,
-            reassess_episodes=3, ant_omni_box=11.5, ant_omni_goals=25, halfcheetah_uni_goals=16),
+            reassess_episodes=3, ant_omni_box=9.5, ant_omni_goals=25, halfcheetah_uni_goals=16),
         "paper": ReproducibilityConfig(
             num_seeds=5, num_iterations=1000, env_batch=1000, num_episodes=10, num_cells=1024, chunk_size=20),
     },
