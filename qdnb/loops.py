@@ -1,8 +1,10 @@
-"""Long loops as jitted ``lax.scan`` chunks, with a progress bar between chunks."""
+"""Long loops as jitted ``lax.scan`` chunks, with a progress bar between chunks;
+independent runs side by side in threads."""
 
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
 import jax
@@ -65,3 +67,16 @@ def scan_in_chunks(
             done += n
             bar.update(n)
     return carry, jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
+
+
+def map_concurrently(fn: Callable[[str], Any], names: tuple[str, ...] | list[str],
+                     concurrent: bool = True) -> dict[str, Any]:
+    """``{name: fn(name)}``, the calls in one thread each unless ``concurrent`` is
+    false.  For runs that share nothing (one per environment): XLA compiles and
+    runs small programs on about one core each, so two such runs on two cores take
+    little longer than one.  Each run's numbers do not depend on the threads."""
+    if not concurrent:
+        return {name: fn(name) for name in names}
+    with ThreadPoolExecutor(max_workers=max(1, len(names))) as pool:
+        futures = {name: pool.submit(fn, name) for name in names}
+        return {name: f.result() for name, f in futures.items()}

@@ -138,6 +138,7 @@ class Run:
             "config_hash": self.config_hash,
             "versions": versions(),
             "device": device(),
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
             "git_sha": git_sha(),
             "wall_time_s": round(time.time() - self.started, 2),
             "results": results,

@@ -70,29 +70,42 @@ def fingerprint(name: str, scale: str, seed: int) -> str:
     return h.hexdigest()
 
 
-def _kernel_path() -> str:
-    """A ``python3`` kernel spec that runs this very interpreter, put first on
-    ``JUPYTER_PATH``, so that a user-level kernel of another Python never runs
-    the notebooks."""
-    kdir = paths.RUNS / ".jupyter" / "kernels" / "python3"
+# XLA options of the kernels that execute the notebooks, per scale.  `tiny` only checks that
+# every path runs, on a few episodes: it is compilation-bound (Chapter 4 compiles ten Brax
+# loops), and XLA's CPU backend at optimisation level 0 compiles a Brax rollout 2.5 times
+# faster (3.3 s against 8.2 s here) for code that runs slower, which `tiny` barely runs.
+# `small` and `paper` keep XLA's defaults.  The flags a run used are in its summary.json.
+KERNEL_XLA_FLAGS = {"tiny": "--xla_backend_optimization_level=0"}
+
+
+def _kernel_path(scale: str) -> str:
+    """A ``python3`` kernel spec that runs this very interpreter (one per scale,
+    with that scale's ``KERNEL_XLA_FLAGS``), put first on ``JUPYTER_PATH``, so
+    that a user-level kernel of another Python never runs the notebooks."""
+    kdir = paths.RUNS / ".jupyter" / scale / "kernels" / "python3"
+    env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(paths.ROOT), os.environ.get("PYTHONPATH")]))}
+    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS"), KERNEL_XLA_FLAGS.get(scale)]))
+    if flags:
+        env["XLA_FLAGS"] = flags
     spec = {
         "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
         "display_name": "Python 3 (qdnb)",
         "language": "python",
-        "env": {"PYTHONPATH": os.pathsep.join(filter(None, [str(paths.ROOT), os.environ.get("PYTHONPATH")]))},
+        "env": env,
     }
     atomic_write_json(kdir / "kernel.json", spec)
     return str(kdir.parent.parent)
 
 
 def execute(source: Path, output: Path, parameters: dict, label: str, progress: bool = True) -> Path:
-    """Run ``source`` with papermill into ``output``; raise ``NotebookFailed`` naming
-    the notebook and the failing cell, leaving the partly executed copy."""
+    """Run ``source`` with papermill into ``output`` (its kernel the one of
+    ``parameters["scale"]``); raise ``NotebookFailed`` naming the notebook and the
+    failing cell, leaving the partly executed copy."""
     import papermill as pm
 
     output.parent.mkdir(parents=True, exist_ok=True)
     env_before = os.environ.get("JUPYTER_PATH")
-    os.environ["JUPYTER_PATH"] = os.pathsep.join(filter(None, [_kernel_path(), env_before]))
+    os.environ["JUPYTER_PATH"] = os.pathsep.join(filter(None, [_kernel_path(parameters["scale"]), env_before]))
     try:
         pm.execute_notebook(
             str(source), str(output), parameters=parameters, kernel_name="python3",

@@ -1,3 +1,4 @@
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -75,3 +76,18 @@ def test_a_remainder_chunk_gives_the_same_numbers_as_one_scan():
     np.testing.assert_array_equal(outs["c"], outs_whole["c"])
     assert outs["i"].shape == (7,)
     np.testing.assert_array_equal(carry, whole)
+
+
+def test_map_concurrently_keeps_names_order_and_results_and_raises():
+    from qdnb.loops import map_concurrently
+
+    f = lambda name: float(jnp.sum(jax.random.normal(jax.random.PRNGKey(len(name)), (100,))))
+    names = ("ant_omni", "halfcheetah_uni", "pointmaze")
+    together, apart = map_concurrently(f, names), map_concurrently(f, names, concurrent=False)
+    assert list(together) == list(names) and together == apart
+
+    def boom(name):
+        raise ValueError(f"bad {name}")
+
+    with pytest.raises(ValueError, match="bad "):
+        map_concurrently(boom, names)

@@ -40,6 +40,21 @@ def test_cli_rejects_bad_names_before_running_anything():
     assert "ch2_primer" in out.stdout and "tiny small paper" in out.stdout
 
 
+def test_kernels_get_their_scales_xla_flags(tmp_path, monkeypatch):
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
+                nbformat.v4.new_code_cell("import os\nprint(repr(os.environ.get('XLA_FLAGS')))")]
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    src = tmp_path / "flags.ipynb"
+    nbformat.write(nb, src)
+    printed = {}
+    for s in ("tiny", "small"):
+        out = runner.execute(src, tmp_path / s / "flags.ipynb", {"scale": s}, "flags", progress=False)
+        printed[s] = nbformat.read(out, as_version=4).cells[-1].outputs[0]["text"].strip()
+    assert printed == {"tiny": repr(runner.KERNEL_XLA_FLAGS["tiny"]), "small": "None"}
+
+
 def test_a_failing_notebook_names_the_cell_and_leaves_the_partial_copy(tmp_path):
     nb = nbformat.v4.new_notebook()
     nb.cells = [nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),

@@ -19,7 +19,6 @@ two simulations then share the cores, about 1.5x faster than one after the other
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +30,7 @@ from flax import traverse_util
 from qdnb.envs import env_names, make_env
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import Evaluation, evaluate_policies
+from qdnb.loops import map_concurrently
 from qdnb.provenance import load_arrays, save_arrays
 from qdnb.qd.algorithms import (MapElites, MapElitesLowSpread, MapElitesSampling, PGAMapElites,
                                 PGAMapElitesLowSpread, run_seeds)
@@ -252,11 +252,8 @@ def run_environments(cfg: ReproducibilityConfig, key: jax.Array, progress: bool 
     if unknown:  # before any thread starts computing
         raise ValueError(f"unknown environments {sorted(unknown)}; valid: {', '.join(env_names())}")
     keys = {name: jax.random.fold_in(key, i) for i, name in enumerate(cfg.environments)}
-    if not concurrent:
-        return {name: run_environment(cfg, name, keys[name], progress) for name in cfg.environments}
-    with ThreadPoolExecutor(max_workers=len(cfg.environments)) as pool:
-        futures = {name: pool.submit(run_environment, cfg, name, keys[name], progress) for name in cfg.environments}
-        return {name: f.result() for name, f in futures.items()}
+    return map_concurrently(lambda name: run_environment(cfg, name, keys[name], progress), cfg.environments,
+                            concurrent)
 
 
 # ----- saving repertoires for the QDT chapter (pickle-free .npz) -----

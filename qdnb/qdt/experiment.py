@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.envs import make_env
+from qdnb.loops import map_concurrently
 from qdnb.qd.cvt import cvt_centroids
 from qdnb.qd.low_spread import accuracy
 from qdnb.qd.reproducibility import Player
@@ -126,3 +126,17 @@ def run_environment(cfg: QDTConfig, repro_cfg: ReproducibilityConfig, env_name: 
         per_seed.append(seed)
     return {"env_name": env_name, "low": low, "high": high, "zones": np.asarray(zones), "goals": np.asarray(goals),
             "removed_goals": removed, "seeds": per_seed}
+
+
+def run_environments(cfg: QDTConfig, repro_cfg: ReproducibilityConfig, repertoires: dict[str, dict[str, Any]],
+                     key: jax.Array, progress: bool = True, concurrent: bool = True) -> dict[str, dict[str, Any]]:
+    """``run_environment`` for each of ``cfg.environments`` (its key the ``fold_in``
+    of the environment's index), in concurrent threads unless ``concurrent`` is
+    false; each result also holds its wall time, ``seconds``."""
+    def one(env_name: str) -> dict[str, Any]:
+        start = time.time()
+        out = run_environment(cfg, repro_cfg, env_name, repertoires[env_name],
+                              jax.random.fold_in(key, cfg.environments.index(env_name)), progress)
+        return {**out, "seconds": time.time() - start}
+
+    return map_concurrently(one, cfg.environments, concurrent)
