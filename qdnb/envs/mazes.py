@@ -72,7 +72,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.envs.base import EnvState
-from qdnb.envs.locomotion import BraxTask, _brax_env, _quiet
+from qdnb.envs.locomotion import BraxTask, _brax_env, _quiet, brax_observation_size
 
 Point = tuple[float, float]
 Segment = tuple[Point, Point]
@@ -159,7 +159,7 @@ class _WalledAnt(BraxTask):
     def __post_init__(self):
         env = brax_ant_with_walls(self.walls, self.backend)
         object.__setattr__(self, "brax_env", env)
-        object.__setattr__(self, "observation_size", env.observation_size + 2)
+        object.__setattr__(self, "observation_size", brax_observation_size(env) + 2)
         object.__setattr__(self, "action_size", env.action_size)
 
     def _noise_mask(self) -> np.ndarray:
