@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 SCALE  ?= small
 SEED   ?= 0
 
-.PHONY: book test venv bench lock clean
+.PHONY: book test lab lint venv bench lock clean
 
 venv: $(VENV)/.installed
 
@@ -20,10 +20,20 @@ $(VENV)/.installed: requirements.lock pyproject.toml
 book: venv
 	$(BIN)/python -m qdnb book --scale $(SCALE) --seed $(SEED)
 
-## Every notebook at tiny scale and the unit tests, on two workers (pytest-xdist):
-## the notebooks run in order on one, the unit test files share the other.
-test: venv
-	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
+## The linter, then every notebook at tiny scale and the unit tests, on two workers
+## (pytest-xdist): the notebooks run in order on one, the unit test files share the other;
+## the primer also runs in place from a fresh kernel, as a reader runs it (nbmake: no
+## papermill, no runner).
+test: venv lint
+	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder tests \
+	    --nbmake --nbmake-timeout=1200 notebooks/ch2_primer.ipynb
+
+lint: venv
+	$(BIN)/python -m ruff check .
+
+## JupyterLab on the notebooks, from the venv (its python3 kernel is the project's).
+lab: venv
+	$(BIN)/python -m jupyter lab --notebook-dir=notebooks
 
 ## Throughput benchmarks (JSON in bench/results/); not part of the tests.
 bench: venv

@@ -5,14 +5,15 @@ never on the runs the notebooks evaluate (its seeds are its own).
    ME-Sampling) on Ant-Omni at the scale's budget, cells and seeds, on the
    thesis's [-15, 15]^2 box.  The final positions of all their elites, pooled,
    give the box: ``b`` = the 95th percentile of max(|x|, |y|), rounded up to
-   0.5 m (``qdnb.qd.reproducibility.reach_bound``), the thesis's own rule
+   0.5 m (``qdnb.chapters.ch4_reproducibility.reach_bound``), the thesis's own rule
    ("methods ... tend to produce solutions within this range") at this budget.
 2. **Cells.**  On that box (Ant-Omni) and on [0, 1]^2 (Halfcheetah-Uni), ME and
    ME-LS (the methods with the most and the fewest candidates per step) at each
    candidate cell count; the count is the largest whose coverage reaches 80 %
    for both on the mean over seeds (``cells_for_coverage``).
 
-The chosen values are then written by hand into ``qdnb/scale.py`` (they are not
+The chosen values are then written by hand into the chapter's ``SCALES``
+(``qdnb/chapters/ch4_reproducibility.py``) (they are not
 read back from this file at run time).  Writes ``bench/results/ant_omni_reach.json``.
 
     python bench/ant_omni_reach.py [--scale small] [--cells 32 64 128]
@@ -29,13 +30,20 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.provenance import device, git_sha, versions
+from qdnb.book.provenance import device, git_sha, versions
+from qdnb.book.registry import config
+from qdnb.chapters.ch4_reproducibility import (
+    COVERAGE_TARGET,
+    METHODS,
+    REACH_QUANTILE,
+    build_algorithms,
+    cells_for_coverage,
+    fitness_offset,
+    reach_bound,
+)
+from qdnb.nets.mlp import MLP
 from qdnb.qd.algorithms import run_seeds
 from qdnb.qd.cvt import cvt_centroids
-from qdnb.qd.reproducibility import (COVERAGE_TARGET, METHODS, REACH_QUANTILE, build_algorithms,
-                                     cells_for_coverage, fitness_offset, reach_bound)
-from qdnb.rl.networks import MLP
-from qdnb.scale import config
 
 PILOT_SEED = 1_000  # not a seed any notebook runs
 
@@ -45,15 +53,29 @@ def final_repertoires(cfg, env_name: str, methods, key):
     env = cfg.make_env(env_name)
     network = MLP(cfg.policy_hidden + (env.action_size,))
     k_cvt, k_run = jax.random.split(key)
-    centroids = cvt_centroids(k_cvt, cfg.num_cells, env.descriptor_low, env.descriptor_high, cfg.cvt_samples,
-                              cfg.cvt_iterations)
-    algorithms = build_algorithms(cfg, env, network, centroids, fitness_offset(env_name, cfg.episode_length))
+    centroids = cvt_centroids(
+        k_cvt,
+        cfg.num_cells,
+        env.descriptor_low,
+        env.descriptor_high,
+        cfg.cvt_samples,
+        cfg.cvt_iterations,
+    )
+    algorithms = build_algorithms(
+        cfg, env, network, centroids, fitness_offset(env_name, cfg.episode_length)
+    )
     seeds = jax.random.split(k_run, cfg.num_seeds)
     out, seconds = {}, {}
     for name in methods:
         start = time.time()
-        states, _, _ = run_seeds(algorithms[name], seeds, cfg.num_iterations, cfg.chunk_size,
-                                 desc=f"{env_name} {name} ({cfg.num_cells} cells)", keep_evaluations=False)
+        states, _, _ = run_seeds(
+            algorithms[name],
+            seeds,
+            cfg.num_iterations,
+            cfg.chunk_size,
+            desc=f"{env_name} {name} ({cfg.num_cells} cells)",
+            keep_evaluations=False,
+        )
         out[name] = jax.device_get(algorithms[name].elites(states.repertoire))
         seconds[name] = round(time.time() - start, 1)
     return out, seconds
@@ -63,15 +85,28 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scale", default="small")
     parser.add_argument("--cells", type=int, nargs="+", default=[32, 64, 128])
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "ant_omni_reach.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "ant_omni_reach.json"
+    )
     args = parser.parse_args()
     base = config("ch4_reproducibility", args.scale)
     key = jax.random.PRNGKey(PILOT_SEED)
-    out = {"benchmark": "Chapter 4 small descriptor spaces: reach and cell counts", "scale": args.scale,
-           "commit": git_sha(), "device": device(), "versions": versions(), "pilot_seed": PILOT_SEED,
-           "budget": {"num_seeds": base.num_seeds, "iterations": base.num_iterations + 1, "env_batch": base.env_batch,
-                      "num_episodes": base.num_episodes, "episode_length": base.episode_length},
-           "rule": {"reach_quantile": REACH_QUANTILE, "coverage_target": COVERAGE_TARGET}}
+    out = {
+        "benchmark": "Chapter 4 small descriptor spaces: reach and cell counts",
+        "scale": args.scale,
+        "commit": git_sha(),
+        "device": device(),
+        "versions": versions(),
+        "pilot_seed": PILOT_SEED,
+        "budget": {
+            "num_seeds": base.num_seeds,
+            "iterations": base.num_iterations + 1,
+            "env_batch": base.env_batch,
+            "num_episodes": base.num_episodes,
+            "episode_length": base.episode_length,
+        },
+        "rule": {"reach_quantile": REACH_QUANTILE, "coverage_target": COVERAGE_TARGET},
+    }
 
     # 1. reach, on the thesis's box
     wide = dataclasses.replace(base, ant_omni_box=15.0)
@@ -81,11 +116,20 @@ def main() -> None:
         d = np.asarray(rep.descriptors)[np.asarray(rep.filled)]
         pooled.append(d)
         r = np.max(np.abs(d), axis=1)
-        per_method[name] = {"elites": int(d.shape[0]), "reach_q50": float(np.quantile(r, 0.5)),
-                            "reach_q95": float(np.quantile(r, 0.95)), "reach_max": float(r.max()),
-                            "seconds": seconds[name]}
+        per_method[name] = {
+            "elites": int(d.shape[0]),
+            "reach_q50": float(np.quantile(r, 0.5)),
+            "reach_q95": float(np.quantile(r, 0.95)),
+            "reach_max": float(r.max()),
+            "seconds": seconds[name],
+        }
     bound = reach_bound(np.concatenate(pooled))
-    out["reach"] = {"cells": wide.num_cells, "box": 15.0, "methods": per_method, "ant_omni_box": bound}
+    out["reach"] = {
+        "cells": wide.num_cells,
+        "box": 15.0,
+        "methods": per_method,
+        "ant_omni_box": bound,
+    }
     print(json.dumps(out["reach"], indent=1), flush=True)
 
     # 2. cell counts, on the bounded box
@@ -94,13 +138,21 @@ def main() -> None:
         coverage, entry = {}, {}
         for i, k in enumerate(args.cells):
             cfg = dataclasses.replace(base, ant_omni_box=bound, num_cells=k)
-            reps, seconds = final_repertoires(cfg, env_name, ("ME", "ME-LS"), jax.random.fold_in(key, 1 + i))
-            coverage[k] = np.stack([np.mean(np.asarray(r.filled), axis=-1) for r in reps.values()])  # (methods, seeds)
-            entry[str(k)] = {name: {"coverage": c.tolist(), "mean": float(c.mean()), "seconds": seconds[name]}
-                             for name, c in zip(reps, coverage[k])}
+            reps, seconds = final_repertoires(
+                cfg, env_name, ("ME", "ME-LS"), jax.random.fold_in(key, 1 + i)
+            )
+            coverage[k] = np.stack(
+                [np.mean(np.asarray(r.filled), axis=-1) for r in reps.values()]
+            )  # (methods, seeds)
+            entry[str(k)] = {
+                name: {"coverage": c.tolist(), "mean": float(c.mean()), "seconds": seconds[name]}
+                for name, c in zip(reps, coverage[k])
+            }
         out["cells"][env_name] = {"by_cells": entry, "num_cells": cells_for_coverage(coverage)}
         print(env_name, json.dumps(out["cells"][env_name], indent=1), flush=True)
-    out["num_cells"] = min(c["num_cells"] for c in out["cells"].values())  # one count for both environments
+    out["num_cells"] = min(
+        c["num_cells"] for c in out["cells"].values()
+    )  # one count for both environments
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print("wrote", args.out)
 

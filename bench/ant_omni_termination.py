@@ -37,13 +37,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb import paths
+from qdnb.book.provenance import device, git_sha, versions
+from qdnb.book.registry import config
+from qdnb.chapters.ch4_qdt import repertoire_path
+from qdnb.chapters.ch4_reproducibility import METHODS, load_repertoires
+from qdnb.core import paths
+from qdnb.core.config import config_hash
 from qdnb.envs import make_env
-from qdnb.provenance import device, git_sha, versions
-from qdnb.qd.reproducibility import METHODS, load_repertoires
-from qdnb.qdt.data import repertoire_path
-from qdnb.rl.networks import MLP
-from qdnb.scale import config, config_hash
+from qdnb.nets.mlp import MLP
 
 
 def height_path(env, network, params, key, terminate: bool = True):
@@ -58,8 +59,13 @@ def height_path(env, network, params, key, terminate: bool = True):
         z = nxt.core.x.pos[0, 2]
         out = nxt.done if terminate else nxt.steps >= env.episode_length
         end = jnp.where(alive & out, nxt.steps, end)
-        return (nxt, end, jnp.where(alive, jnp.maximum(z_max, z), z_max), jnp.where(alive, jnp.minimum(z_min, z), z_min),
-                fitness + jnp.where(alive, nxt.reward, 0.0)), None
+        return (
+            nxt,
+            end,
+            jnp.where(alive, jnp.maximum(z_max, z), z_max),
+            jnp.where(alive, jnp.minimum(z_min, z), z_min),
+            fitness + jnp.where(alive, nxt.reward, 0.0),
+        ), None
 
     init = (state, jnp.int32(-1), jnp.float32(-jnp.inf), jnp.float32(jnp.inf), jnp.float32(0.0))
     (_, end, z_max, z_min, fitness), _ = jax.lax.scan(body, init, None, length=env.episode_length)
@@ -76,22 +82,40 @@ def elites(scale: str, episodes: int, key: jax.Array) -> dict:
         path = repertoire_path(scale, "ant_omni", name)
         arrays = load_repertoires(path, config_hash(cfg))
         if arrays is None:
-            raise SystemExit(f"{path} is missing or from another config: run the Chapter 4 notebook at {scale} first")
+            raise SystemExit(
+                f"{path} is missing or from another config: run the Chapter 4 notebook at {scale} "
+                "first"
+            )
         seeds, cells = np.nonzero(np.isfinite(arrays["fitnesses"]))
-        params = jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x[seeds, cells]), episodes, axis=0),
-                              arrays["genotypes"])
-        end, above, below, fitness = map(np.asarray, play(params, jax.random.split(jax.random.fold_in(key, len(out)),
-                                                                                      seeds.size * episodes)))
+        params = jax.tree.map(
+            lambda x: jnp.repeat(jnp.asarray(x[seeds, cells]), episodes, axis=0),
+            arrays["genotypes"],
+        )
+        end, above, below, fitness = map(
+            np.asarray,
+            play(
+                params, jax.random.split(jax.random.fold_in(key, len(out)), seeds.size * episodes)
+            ),
+        )
         early = end < env.episode_length
-        out[name] = {"elites": int(seeds.size), "episodes": int(end.size), "ended_early": float(early.mean()),
-                     "above_band": float((early & above).mean()), "below_band": float((early & below).mean()),
-                     "median_end_step_of_early": float(np.median(end[early])) if early.any() else None,
-                     "fitness_early": float(fitness[early].mean()) if early.any() else None,
-                     "fitness_full": float(fitness[~early].mean()) if (~early).any() else None,
-                     "elites_with_an_early_end": float(early.reshape(-1, episodes).any(1).mean())}
+        out[name] = {
+            "elites": int(seeds.size),
+            "episodes": int(end.size),
+            "ended_early": float(early.mean()),
+            "above_band": float((early & above).mean()),
+            "below_band": float((early & below).mean()),
+            "median_end_step_of_early": float(np.median(end[early])) if early.any() else None,
+            "fitness_early": float(fitness[early].mean()) if early.any() else None,
+            "fitness_full": float(fitness[~early].mean()) if (~early).any() else None,
+            "elites_with_an_early_end": float(early.reshape(-1, episodes).any(1).mean()),
+        }
         print(name, out[name], flush=True)
     run_dir = paths.run_dir(scale, "ch4_reproducibility", create=False)
-    return {"run": str(run_dir.relative_to(paths.ROOT)), "episodes_per_elite": episodes, "methods": out}
+    return {
+        "run": str(run_dir.relative_to(paths.ROOT)),
+        "episodes_per_elite": episodes,
+        "methods": out,
+    }
 
 
 def pipelines(scale: str, count: int, key: jax.Array) -> dict:
@@ -107,11 +131,17 @@ def pipelines(scale: str, count: int, key: jax.Array) -> dict:
         start = time.time()
         _, above, below, _ = map(np.asarray, play(params, keys))
         seconds = time.time() - start
-        out[backend] = {"ever_above_band": float(above.mean()), "ever_below_band": float(below.mean()),
-                        "steps_per_second": count * cfg.episode_length / seconds}
+        out[backend] = {
+            "ever_above_band": float(above.mean()),
+            "ever_below_band": float(below.mean()),
+            "steps_per_second": count * cfg.episode_length / seconds,
+        }
         print(backend, out[backend], flush=True)
-    return {"policies": count, "note": "one episode each, the termination rule off; NaN heights count as neither",
-            "pipelines": out}
+    return {
+        "policies": count,
+        "note": "one episode each, the termination rule off; NaN heights count as neither",
+        "pipelines": out,
+    }
 
 
 def main() -> None:
@@ -119,13 +149,20 @@ def main() -> None:
     parser.add_argument("--scale", default="small")
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--random", type=int, default=64)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "ant_omni_termination.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "ant_omni_termination.json"
+    )
     args = parser.parse_args()
     key = jax.random.PRNGKey(2_000)
-    out = {"benchmark": "Ant-Omni: episodes that end early, and why", "scale": args.scale, "commit": git_sha(),
-           "device": device(), "versions": versions(),
-           "elites": elites(args.scale, args.episodes, jax.random.fold_in(key, 0)),
-           "random_policies": pipelines(args.scale, args.random, jax.random.fold_in(key, 1))}
+    out = {
+        "benchmark": "Ant-Omni: episodes that end early, and why",
+        "scale": args.scale,
+        "commit": git_sha(),
+        "device": device(),
+        "versions": versions(),
+        "elites": elites(args.scale, args.episodes, jax.random.fold_in(key, 0)),
+        "random_policies": pipelines(args.scale, args.random, jax.random.fold_in(key, 1)),
+    }
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print("wrote", args.out)
 

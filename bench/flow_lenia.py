@@ -33,8 +33,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from qdnb.lenia import flow_lenia as fl
-from qdnb.provenance import atomic_write_json, device, versions
+from qdnb.book.provenance import device, versions
+from qdnb.core.io import atomic_write_json
+from qdnb.models.lenia import flow_lenia as fl
 
 
 def step_with(reintegrate, system, state, key, cfg):
@@ -46,11 +47,14 @@ def step_with(reintegrate, system, state, key, cfg):
 @partial(jax.jit, static_argnames=("cfg",))
 def stepwise_difference(systems, states, keys, cfg):
     """Largest |reference step(x_t) - x_{t+1}| over a fast episode, per field."""
+
     def one(system, state, key):
         episode = fl.rollout(system, state, key, cfg)
         step_keys = jax.random.split(key, cfg.steps)
         now = jax.tree.map(lambda x: x[:-1], episode)
-        ref = jax.vmap(lambda st, k: step_with(fl.reintegrate_reference, system, st, k, cfg))(now, step_keys)
+        ref = jax.vmap(lambda st, k: step_with(fl.reintegrate_reference, system, st, k, cfg))(
+            now, step_keys
+        )
         return (jnp.max(jnp.abs(ref.A - episode.A[1:])), jnp.max(jnp.abs(ref.P - episode.P[1:])))
 
     dA, dP = jax.vmap(one)(systems, states, keys)
@@ -89,9 +93,13 @@ def main():
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "flow_lenia.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "flow_lenia.json"
+    )
     args = parser.parse_args()
-    cfg = dataclasses.replace(fl.FlowLeniaConfig(), height=args.size, width=args.size, steps=args.steps)
+    cfg = dataclasses.replace(
+        fl.FlowLeniaConfig(), height=args.size, width=args.size, steps=args.steps
+    )
     results = []
     for batch in (1, 8):
         key = jax.random.PRNGKey(batch)
@@ -99,24 +107,43 @@ def main():
         systems = jax.vmap(fl.sample_system, in_axes=(0, None))(jax.random.split(k_sys, batch), cfg)
         states = jax.vmap(fl.initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
         keys = jax.random.split(k_run, batch)
-        row = {"batch": batch, "grid": [cfg.height, cfg.width], "kernels": cfg.kernels, "steps": cfg.steps}
+        row = {
+            "batch": batch,
+            "grid": [cfg.height, cfg.width],
+            "kernels": cfg.kernels,
+            "steps": cfg.steps,
+        }
         finals = {}
         for name, reference in (("scatter_9", False), ("gather_121", True)):
-            final, compile_s, run_s = timed(lambda: episodes(systems, states, keys, cfg, reference), args.repeats)
+            final, compile_s, run_s = timed(
+                lambda: episodes(systems, states, keys, cfg, reference), args.repeats
+            )
             finals[name] = final
-            row[name] = {"compile_s": round(compile_s, 3), "episode_s": round(run_s, 4),
-                         "steps_per_s": round(batch * cfg.steps / run_s, 1)}
+            row[name] = {
+                "compile_s": round(compile_s, 3),
+                "episode_s": round(run_s, 4),
+                "steps_per_s": round(batch * cfg.steps / run_s, 1),
+            }
             print(f"batch {batch}, {name}: {row[name]}")
         dA, dP = stepwise_difference(systems, states, keys, cfg)
         row["stepwise_max_abs_diff_A"], row["stepwise_max_abs_diff_P"] = float(dA), float(dP)
-        row["agree_1e-5"] = row["stepwise_max_abs_diff_A"] <= 1e-5 and row["stepwise_max_abs_diff_P"] <= 1e-5
-        row["free_running_final_max_abs_diff_A"] = float(jnp.max(jnp.abs(finals["scatter_9"].A - finals["gather_121"].A)))
+        row["agree_1e-5"] = (
+            row["stepwise_max_abs_diff_A"] <= 1e-5 and row["stepwise_max_abs_diff_P"] <= 1e-5
+        )
+        row["free_running_final_max_abs_diff_A"] = float(
+            jnp.max(jnp.abs(finals["scatter_9"].A - finals["gather_121"].A))
+        )
         row["speedup"] = round(row["gather_121"]["episode_s"] / row["scatter_9"]["episode_s"], 2)
-        print(f"batch {batch}: speed-up {row['speedup']}x, step by step max |dA| {float(dA):.2e}, "
-              f"max |dP| {float(dP):.2e}; free-running episodes end {row['free_running_final_max_abs_diff_A']:.2e} apart")
+        print(
+            f"batch {batch}: speed-up {row['speedup']}x, step by step max |dA| {float(dA):.2e}, "
+            f"max |dP| {float(dP):.2e}; free-running episodes end "
+            f"{row['free_running_final_max_abs_diff_A']:.2e} apart"
+        )
         results.append(row)
-    atomic_write_json(args.out, {"benchmark": "flow_lenia", "device": device(), "versions": versions(),
-                                 "results": results})
+    atomic_write_json(
+        args.out,
+        {"benchmark": "flow_lenia", "device": device(), "versions": versions(), "results": results},
+    )
     print(f"wrote {args.out}")
 
 

@@ -7,7 +7,7 @@ for the whole patch (Plantec et al.'s parameter-embedding example) or one per
 cell.  For each P^0 rule and each mixing rule (``stoch``: a fixed key, as the
 reference code; ``stoch_fresh``: a fresh key every step), ``pick_system`` draws
 the same ``--candidates`` systems (Table 5.1) and measures on ``--probes``
-episodes each (``qdnb.lenia.experiment.pick_system``, every statistic over the
+episodes each (``qdnb.chapters.ch5_flow_lenia.pick_system``, every statistic over the
 mean of the final frames' squared value):
 
 - ``diversity``: how much of the final frame varies across initial states;
@@ -33,9 +33,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.lenia.experiment import pick_system
-from qdnb.provenance import atomic_write_json, device, versions
-from qdnb.scale import config
+from qdnb.book.provenance import device, versions
+from qdnb.book.registry import config
+from qdnb.chapters.ch5_flow_lenia import pick_system
+from qdnb.core.io import atomic_write_json
 
 
 def main():
@@ -44,7 +45,9 @@ def main():
     parser.add_argument("--candidates", type=int, default=16)
     parser.add_argument("--probes", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "flow_lenia_p0.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "flow_lenia_p0.json"
+    )
     args = parser.parse_args()
     base = config("ch5_flow_lenia", args.scale).world
     rows = []
@@ -53,18 +56,42 @@ def main():
             world = dataclasses.replace(base, p0=p0, mix=mix)
             start = time.perf_counter()
             choice = pick_system(jax.random.PRNGKey(args.seed), world, args.candidates, args.probes)
-            row = {"p0": p0, "mix": mix, "seconds": round(time.perf_counter() - start, 1),
-                   "median": {k: round(float(np.median(v)), 4) for k, v in choice.statistics.items()},
-                   "meet_all_criteria": int(np.sum(np.all(np.stack(list(choice.passed.values())), axis=0))),
-                   "kept": choice.index,
-                   "kept_statistics": {k: round(float(v[choice.index]), 4) for k, v in choice.statistics.items()},
-                   "per_system": {k: [round(float(x), 4) for x in v] for k, v in choice.statistics.items()}}
-            print(f"P0 {p0:5s} mix {mix:11s}: medians {row['median']}, {row['meet_all_criteria']} of "
-                  f"{args.candidates} meet the criteria, kept {row['kept']} ({row['seconds']} s)")
+            row = {
+                "p0": p0,
+                "mix": mix,
+                "seconds": round(time.perf_counter() - start, 1),
+                "median": {k: round(float(np.median(v)), 4) for k, v in choice.statistics.items()},
+                "meet_all_criteria": int(
+                    np.sum(np.all(np.stack(list(choice.passed.values())), axis=0))
+                ),
+                "kept": choice.index,
+                "kept_statistics": {
+                    k: round(float(v[choice.index]), 4) for k, v in choice.statistics.items()
+                },
+                "per_system": {
+                    k: [round(float(x), 4) for x in v] for k, v in choice.statistics.items()
+                },
+            }
+            print(
+                f"P0 {p0:5s} mix {mix:11s}: medians {row['median']}, {row['meet_all_criteria']} of "
+                f"{args.candidates} meet the criteria, kept {row['kept']} ({row['seconds']} s)"
+            )
             rows.append(row)
-    atomic_write_json(args.out, {"benchmark": "flow_lenia_p0", "scale": args.scale, "grid": [base.height, base.width],
-                                 "kernels": base.kernels, "candidates": args.candidates, "probes": args.probes,
-                                 "seed": args.seed, "device": device(), "versions": versions(), "results": rows})
+    atomic_write_json(
+        args.out,
+        {
+            "benchmark": "flow_lenia_p0",
+            "scale": args.scale,
+            "grid": [base.height, base.width],
+            "kernels": base.kernels,
+            "candidates": args.candidates,
+            "probes": args.probes,
+            "seed": args.seed,
+            "device": device(),
+            "versions": versions(),
+            "results": rows,
+        },
+    )
     print(f"wrote {args.out}")
 
 

@@ -1,7 +1,7 @@
 """The FLT's `small` settings, from a measured sweep at an equal wall-clock budget.
 
 Every variant (``--variants``: names from ``VARIANTS``) trains the FLT with the
-notebook's own loop (``qdnb.lenia.flt.train``: fresh episodes of the notebook's
+notebook's own loop (``qdnb.models.lenia.flt.train``: fresh episodes of the notebook's
 system every step) for as many steps as fit in ``--seconds`` of training on this
 machine, compilation included (``train(..., max_seconds=...)``).  It is then
 scored on ``--val`` validation episodes, drawn from a key the notebook never uses
@@ -37,11 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.lenia import flow_lenia as fl
-from qdnb.lenia.experiment import pick_system
-from qdnb.lenia.flt import frame_errors, make_model, train, unroll
-from qdnb.provenance import atomic_write_json, device, versions
-from qdnb.scale import config
+from qdnb.book.provenance import device, versions
+from qdnb.book.registry import config
+from qdnb.chapters.ch5_flow_lenia import pick_system
+from qdnb.core.io import atomic_write_json
+from qdnb.models.lenia import flow_lenia as fl
+from qdnb.models.lenia.flt import frame_errors, make_model, train, unroll
 
 VARIANTS = {  # changes to the `small` FLTConfig
     "base": {},
@@ -65,56 +66,98 @@ def main():
     parser.add_argument("--val", type=int, default=64)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "flt_sweep.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "flt_sweep.json"
+    )
     args = parser.parse_args()
     cfg = config("ch5_flow_lenia", args.scale)
     world = cfg.world
     # the notebook's keys for the system and the training; validation from a key it never uses
     _, k_pick, k_train, _, _ = jax.random.split(jax.random.PRNGKey(args.seed), 5)
     system = pick_system(k_pick, world, cfg.system_candidates, cfg.system_probes).system
-    val = fl.frames(fl.simulate_system(system, jax.random.PRNGKey(10_000 + args.seed), world, args.val))
+    val = fl.frames(
+        fl.simulate_system(system, jax.random.PRNGKey(10_000 + args.seed), world, args.val)
+    )
     previous = json.loads(args.out.read_text()) if args.out.exists() else {}
-    rows = {r["variant"]: r for r in previous.get("results", []) if previous.get("scale") == args.scale}
+    rows = {
+        r["variant"]: r for r in previous.get("results", []) if previous.get("scale") == args.scale
+    }
     for name in args.variants:
         flt_cfg = dataclasses.replace(cfg.flt, **VARIANTS[name])
         model = make_model(world, flt_cfg)
         start = time.perf_counter()
-        trained = train(model, dataclasses.replace(flt_cfg, train_steps=10**6), world, system, k_train,
-                        progress=False, max_seconds=args.seconds)
+        trained = train(
+            model,
+            dataclasses.replace(flt_cfg, train_steps=10**6),
+            world,
+            system,
+            k_train,
+            progress=False,
+            max_seconds=args.seconds,
+        )
         seconds = time.perf_counter() - start
         steps = len(trained.losses)
-        tf_err = [frame_errors(model.apply(trained.params, val[i:i + 16, :-1]), val[i:i + 16, 1:])
-                  for i in range(0, args.val, 16)]
-        frame = np.concatenate([np.asarray(e["frame"]) for e in tf_err])  # (val, T): A and P, Eq. 5.3
+        tf_err = [
+            frame_errors(model.apply(trained.params, val[i : i + 16, :-1]), val[i : i + 16, 1:])
+            for i in range(0, args.val, 16)
+        ]
+        frame = np.concatenate(
+            [np.asarray(e["frame"]) for e in tf_err]
+        )  # (val, T): A and P, Eq. 5.3
         a_part = np.concatenate([np.asarray(e["A"]) for e in tf_err])
         channels = val.shape[-1]
         p_part = (frame * channels - a_part) / (channels - 1)
-        pred = jnp.concatenate([unroll(model, trained.params, val[i:i + 16, 0]) for i in range(0, args.val, 16)])
+        pred = jnp.concatenate(
+            [unroll(model, trained.params, val[i : i + 16, 0]) for i in range(0, args.val, 16)]
+        )
         unrolled = frame_errors(pred, val[:, 1:])
         final = np.asarray(frame_errors(pred[:, -1], val[:, -1])["A"])
-        mean_final = np.asarray(frame_errors(jnp.broadcast_to(trained.mean_frames[-1], val[:, -1].shape),
-                                             val[:, -1])["A"])
-        row = {"variant": name, "changes": {k: list(v) if isinstance(v, tuple) else v
-                                            for k, v in VARIANTS[name].items()},
-               "train_steps": steps, "train_s": round(seconds, 1), "step_s": round(seconds / steps, 3),
-               "episodes_seen": trained.episodes_seen,
-               "eligible": name not in ABLATIONS,
-               "val_unrolled_eq53": float(np.mean(unrolled["frame"])),
-               "val_unrolled_A": float(np.mean(unrolled["A"])),
-               "val_eq53_loss": float(frame.mean()), "val_loss_A": float(a_part.mean()),
-               "val_loss_P": float(p_part.mean()),
-               "train_loss_last_5pct": float(np.mean(trained.losses[-max(1, steps // 20):])),
-               "unrolled_final_mse_A_median": float(np.median(final)),
-               "mean_frame_final_mse_A_median": float(np.median(mean_final))}
+        mean_final = np.asarray(
+            frame_errors(jnp.broadcast_to(trained.mean_frames[-1], val[:, -1].shape), val[:, -1])[
+                "A"
+            ]
+        )
+        row = {
+            "variant": name,
+            "changes": {
+                k: list(v) if isinstance(v, tuple) else v for k, v in VARIANTS[name].items()
+            },
+            "train_steps": steps,
+            "train_s": round(seconds, 1),
+            "step_s": round(seconds / steps, 3),
+            "episodes_seen": trained.episodes_seen,
+            "eligible": name not in ABLATIONS,
+            "val_unrolled_eq53": float(np.mean(unrolled["frame"])),
+            "val_unrolled_A": float(np.mean(unrolled["A"])),
+            "val_eq53_loss": float(frame.mean()),
+            "val_loss_A": float(a_part.mean()),
+            "val_loss_P": float(p_part.mean()),
+            "train_loss_last_5pct": float(np.mean(trained.losses[-max(1, steps // 20) :])),
+            "unrolled_final_mse_A_median": float(np.median(final)),
+            "mean_frame_final_mse_A_median": float(np.median(mean_final)),
+        }
         print(json.dumps(row), flush=True)
         rows[name] = row
-        best = min((r for r in rows.values() if r["eligible"]), key=lambda r: r["val_unrolled_eq53"],
-                   default={"variant": None})["variant"]
-        atomic_write_json(args.out, {"benchmark": "flt_sweep", "scale": args.scale, "seconds": args.seconds,
-                                     "validation_episodes": args.val, "seed": args.seed,
-                                     "selection": "lowest val_unrolled_eq53 among eligible variants",
-                                     "selected": best,
-                                     "device": device(), "versions": versions(), "results": list(rows.values())})
+        best = min(
+            (r for r in rows.values() if r["eligible"]),
+            key=lambda r: r["val_unrolled_eq53"],
+            default={"variant": None},
+        )["variant"]
+        atomic_write_json(
+            args.out,
+            {
+                "benchmark": "flt_sweep",
+                "scale": args.scale,
+                "seconds": args.seconds,
+                "validation_episodes": args.val,
+                "seed": args.seed,
+                "selection": "lowest val_unrolled_eq53 among eligible variants",
+                "selected": best,
+                "device": device(),
+                "versions": versions(),
+                "results": list(rows.values()),
+            },
+        )
     print(f"wrote {args.out}")
 
 

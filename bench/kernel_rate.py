@@ -2,7 +2,7 @@
 at the scale's settings and seeds (as the Chapter 3 notebook runs it) through
 ``run_environment`` with its progress bar, two ways: in this Python process,
 and in a notebook of one cell executed by papermill with the kernel spec
-``python -m qdnb run`` uses (``qdnb.runner.execute``).  Records the median
+``python -m qdnb run`` uses (``qdnb.book.runner.execute``).  Records the median
 chunk's seconds per iteration of each, the statistic the notebook reports.
 Writes ``bench/results/kernel_rate.json``.
 
@@ -21,15 +21,15 @@ from pathlib import Path
 import jax
 import nbformat
 
-from qdnb.rl.qdpg_experiment import run_environment
-from qdnb.runner import execute
-from qdnb.scale import config
+from qdnb.book.registry import config
+from qdnb.book.runner import execute
+from qdnb.chapters.ch3_qdpg import run_environment
 
 CELL = """
 import json
 import jax
-from qdnb.rl.qdpg_experiment import run_environment
-from qdnb.scale import config
+from qdnb.chapters.ch3_qdpg import run_environment
+from qdnb.book.registry import config
 cfg = config("ch3_qdpg", {scale!r}).with_pointmaze_iterations({iterations})
 out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",))
 with open({result!r}, "w") as f:
@@ -46,18 +46,31 @@ def main() -> None:
     rates = {}
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "rate.json"
-        nb = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell(
-            CELL.format(scale=args.scale, iterations=args.iterations, result=str(result)))])
+        nb = nbformat.v4.new_notebook(
+            cells=[
+                nbformat.v4.new_code_cell(
+                    CELL.format(scale=args.scale, iterations=args.iterations, result=str(result))
+                )
+            ]
+        )
         source = Path(tmp) / "rate.ipynb"
         nbformat.write(nb, source)
         execute(source, Path(tmp) / "rate.out.ipynb", {}, "kernel_rate", progress=False)
         rates["in a papermill kernel"] = json.loads(result.read_text())
-    out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",))
+    out = run_environment(
+        cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",)
+    )
     rates["in this process"] = out["methods"]["QD-PG"]["steady_seconds_per_iteration"]
-    record = {"scale": args.scale, "machine": platform.machine(), "cpu_count": os.cpu_count(),
-              "iterations": args.iterations, "seeds": cfg.seeds("pointmaze", "QD-PG"), "num_actors": cfg.pointmaze.num_actors,
-              "seconds_per_iteration": rates,
-              "kernel_over_process": rates["in a papermill kernel"] / rates["in this process"]}
+    record = {
+        "scale": args.scale,
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "iterations": args.iterations,
+        "seeds": cfg.seeds("pointmaze", "QD-PG"),
+        "num_actors": cfg.pointmaze.num_actors,
+        "seconds_per_iteration": rates,
+        "kernel_over_process": rates["in a papermill kernel"] / rates["in this process"],
+    }
     path = Path(__file__).parent / "results" / "kernel_rate.json"
     path.write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(record, indent=1))

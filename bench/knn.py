@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from qdnb.qd.novelty import k_smallest, pairwise_squared_distances
@@ -43,19 +42,39 @@ def main() -> None:
     rows = []
     for size in (2_000, 10_000):
         reference = jax.random.uniform(jax.random.PRNGKey(1), (size, 2), minval=-1, maxval=1)
-        ways = {"top_k": lambda d: -jax.lax.top_k(-d, k)[0], "k_smallest": lambda d: k_smallest(d, k)}
+        ways = {
+            "top_k": lambda d: -jax.lax.top_k(-d, k)[0],
+            "k_smallest": lambda d: k_smallest(d, k),
+        }
         timings, answers = {}, {}
         for name, select in ways.items():
-            fn = jax.jit(lambda q, select=select: jax.lax.map(
-                lambda c: select(pairwise_squared_distances(c, reference)), q.reshape(-1, args.chunk, 2)))
+            fn = jax.jit(
+                lambda q, select=select: jax.lax.map(
+                    lambda c: select(pairwise_squared_distances(c, reference)),
+                    q.reshape(-1, args.chunk, 2),
+                )
+            )
             timings[name] = best_time(fn, queries, args.repeats)
             answers[name] = np.asarray(fn(queries))
-        rows.append({"archive_size": size, "seconds": timings,
-                     "k_smallest_over_top_k": timings["k_smallest"] / timings["top_k"],
-                     "same_values": bool(np.allclose(answers["top_k"], answers["k_smallest"]))})
+        rows.append(
+            {
+                "archive_size": size,
+                "seconds": timings,
+                "k_smallest_over_top_k": timings["k_smallest"] / timings["top_k"],
+                "same_values": bool(np.allclose(answers["top_k"], answers["k_smallest"])),
+            }
+        )
         print(rows[-1], flush=True)
-    out = {"device": jax.devices()[0].platform, "machine": platform.machine(), "cpu_count": os.cpu_count(),
-           "queries": args.queries, "chunk": args.chunk, "k": k, "repeats": args.repeats, "rows": rows}
+    out = {
+        "device": jax.devices()[0].platform,
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "queries": args.queries,
+        "chunk": args.chunk,
+        "k": k,
+        "repeats": args.repeats,
+        "rows": rows,
+    }
     path = Path(__file__).parent / "results" / "knn.json"
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {path}")

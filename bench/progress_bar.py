@@ -3,7 +3,7 @@ settings and seeds (as the Chapter 3 notebook runs it) through
 ``run_environment``, three ways: no bar, a bar with tqdm's monitor thread (its
 default ``monitor_interval`` of 10 s), and a bar without it.  Records the
 median chunk's seconds per iteration of each (measured: the three agree within
-the loop's run-to-run spread, so ``qdnb.loops`` keeps tqdm's defaults).
+the loop's run-to-run spread, so ``qdnb.core.loops`` keeps tqdm's defaults).
 Writes ``bench/results/progress_bar.json``.
 
     python bench/progress_bar.py [--scale small] [--iterations 120]
@@ -20,8 +20,8 @@ from pathlib import Path
 import jax
 from tqdm import tqdm
 
-from qdnb.rl.qdpg_experiment import run_environment
-from qdnb.scale import config
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import run_environment
 
 
 def main() -> None:
@@ -30,18 +30,29 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=120)
     args = parser.parse_args()
     cfg = config("ch3_qdpg", args.scale).with_pointmaze_iterations(args.iterations)
-    ways = {"no bar": (False, 0), "bar with the monitor thread": (True, 10), "bar without it": (True, 0)}
+    ways = {
+        "no bar": (False, 0),
+        "bar with the monitor thread": (True, 10),
+        "bar without it": (True, 0),
+    }
     rates = {}
     for name, (progress, interval) in ways.items():
         tqdm.monitor_interval = interval
-        out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=progress, methods=("QD-PG",))
+        out = run_environment(
+            cfg, "pointmaze", jax.random.PRNGKey(0), progress=progress, methods=("QD-PG",)
+        )
         rates[name] = out["methods"]["QD-PG"]["steady_seconds_per_iteration"]
         print(name, rates[name], flush=True)
-    result = {"scale": args.scale, "machine": platform.machine(), "cpu_count": os.cpu_count(),
-              "iterations": args.iterations, "seeds": cfg.seeds("pointmaze", "QD-PG"),
-              "seconds_per_iteration": rates,
-              "monitor_over_no_bar": rates["bar with the monitor thread"] / rates["no bar"],
-              "no_monitor_over_no_bar": rates["bar without it"] / rates["no bar"]}
+    result = {
+        "scale": args.scale,
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "iterations": args.iterations,
+        "seeds": cfg.seeds("pointmaze", "QD-PG"),
+        "seconds_per_iteration": rates,
+        "monitor_over_no_bar": rates["bar with the monitor thread"] / rates["no bar"],
+        "no_monitor_over_no_bar": rates["bar without it"] / rates["no bar"],
+    }
     path = Path(__file__).parent / "results" / "progress_bar.json"
     path.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import jax
 
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import build_algorithms, steady_rate
 from qdnb.qd.algorithms import run_seeds
-from qdnb.rl.qdpg_experiment import build_algorithms, steady_rate
-from qdnb.scale import config
 
 
 def timed(fn, *args, repeats: int = 5) -> float:
@@ -59,7 +59,9 @@ def main() -> None:
     # rate would flatter the loop; the slots past the written ones hold zeros,
     # which cost the same).
     mid_run = min(state.buffer.capacity, task.num_steps // 2)
-    state = state.replace(buffer=state.buffer.replace(size=jax.numpy.asarray(mid_run, jax.numpy.int32)))
+    state = state.replace(
+        buffer=state.buffer.replace(size=jax.numpy.asarray(mid_run, jax.numpy.int32))
+    )
     key = jax.random.PRNGKey(1)
     parents = jax.tree.map(lambda x: x[: task.num_actors], state.repertoire.genotypes)
     diversity = jax.numpy.arange(task.num_actors) < task.num_actors // 2
@@ -70,15 +72,23 @@ def main() -> None:
 
     def novelty(s, k):
         batches = s.buffer.sample(k, task.num_critic_steps * cfg.td3_batch_size)
-        batches = jax.tree.map(lambda x: x.reshape((task.num_critic_steps, cfg.td3_batch_size) + x.shape[1:]), batches)
+        batches = jax.tree.map(
+            lambda x: x.reshape((task.num_critic_steps, cfg.td3_batch_size) + x.shape[1:]), batches
+        )
         return algo.novelty_reward(s.archive, batches)
 
     def updates(s, k):
         k1, k2 = jax.random.split(k)
         return algo.mutate(s, parents, diversity, k1), algo.train_critics(s, k2)
 
-    parts = {name: timed(jax.jit(fn), state, key) for name, fn in
-             (("evaluation", evaluation), ("novelty", novelty), ("gradient_updates", updates))}
+    parts = {
+        name: timed(jax.jit(fn), state, key)
+        for name, fn in (
+            ("evaluation", evaluation),
+            ("novelty", novelty),
+            ("gradient_updates", updates),
+        )
+    }
     # The critic training computes the novelty rewards: count them once, as novelty.
     parts["gradient_updates"] = max(parts["gradient_updates"] - parts["novelty"], 0.0)
     steps_per_iteration = task.num_actors * task.episode_length
@@ -89,17 +99,27 @@ def main() -> None:
     def through_run_seeds(num_seeds):
         chunks = []
         start = time.perf_counter()
-        _, _, history = run_seeds(algo, jax.random.split(key, num_seeds), task.num_iterations - 1, cfg.chunk_size,
-                                  progress=False, chunk_seconds=chunks)
+        _, _, history = run_seeds(
+            algo,
+            jax.random.split(key, num_seeds),
+            task.num_iterations - 1,
+            cfg.chunk_size,
+            progress=False,
+            chunk_seconds=chunks,
+        )
         jax.block_until_ready(history)
         seconds = time.perf_counter() - start
         return steady_rate(chunks, cfg.chunk_size, seconds / task.num_iterations), seconds
 
     seeds = cfg.seeds("pointmaze", "QD-PG")
     run_seeds_per_iteration, loop = through_run_seeds(seeds)
-    one_seed_per_iteration, _ = through_run_seeds(1) if seeds > 1 else (run_seeds_per_iteration, loop)
+    one_seed_per_iteration, _ = (
+        through_run_seeds(1) if seeds > 1 else (run_seeds_per_iteration, loop)
+    )
     # The steady rate: one compiled scan of the same iterations, timed on its second call.
-    scan = jax.jit(lambda s: jax.lax.scan(lambda c, _: algo.step(c), s, None, length=args.iterations))
+    scan = jax.jit(
+        lambda s: jax.lax.scan(lambda c, _: algo.step(c), s, None, length=args.iterations)
+    )
     jax.block_until_ready(scan(state))
     start = time.perf_counter()
     _, evs = scan(state)
@@ -133,7 +153,8 @@ def main() -> None:
         "run_seeds_seconds_per_iteration": run_seeds_per_iteration,
         "run_seeds_over_steady": run_seeds_per_iteration / per_iteration,
         "run_seeds_one_seed_seconds_per_iteration": one_seed_per_iteration,
-        "vmap_cost_per_seed_over_one_seed": run_seeds_per_iteration / (seeds * one_seed_per_iteration),
+        "vmap_cost_per_seed_over_one_seed": run_seeds_per_iteration
+        / (seeds * one_seed_per_iteration),
         "env_steps_per_second": env_steps / steady,
         "scale_budget_steps": task.num_steps,
         "projected_seconds_for_scale_budget": per_iteration * task.num_iterations,

@@ -18,9 +18,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import POINTMAZE_PAPER, build_algorithms, in_exit_zone
 from qdnb.qd.algorithms import run_seeds
-from qdnb.rl.qdpg_experiment import build_algorithms, in_exit_zone
-from qdnb.scale import POINTMAZE_PAPER, config
 
 
 def main() -> None:
@@ -29,32 +29,61 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     small = config("ch3_qdpg", "small")
-    settings = {"sgd (Table 3.2)": dict(optimizer="sgd", learning_rate=POINTMAZE_PAPER.learning_rate),
-                "adam (small scale)": dict(optimizer=small.pointmaze.optimizer,
-                                           learning_rate=small.pointmaze.learning_rate)}
+    settings = {
+        "sgd (Table 3.2)": dict(optimizer="sgd", learning_rate=POINTMAZE_PAPER.learning_rate),
+        "adam (small scale)": dict(
+            optimizer=small.pointmaze.optimizer, learning_rate=small.pointmaze.learning_rate
+        ),
+    }
     rows = []
     for label, change in settings.items():
-        cfg = dataclasses.replace(small.with_seeds(1), pointmaze=dataclasses.replace(small.pointmaze, **change))
+        cfg = dataclasses.replace(
+            small.with_seeds(1), pointmaze=dataclasses.replace(small.pointmaze, **change)
+        )
         algorithms = build_algorithms(cfg, "pointmaze")
         for method in args.methods.split(","):
             start = time.perf_counter()
-            _, _, h = run_seeds(algorithms[method], jax.random.PRNGKey(args.seed)[None], cfg.pointmaze.num_iterations - 1,
-                                cfg.chunk_size, progress=False)
+            _, _, h = run_seeds(
+                algorithms[method],
+                jax.random.PRNGKey(args.seed)[None],
+                cfg.pointmaze.num_iterations - 1,
+                cfg.chunk_size,
+                progress=False,
+            )
             h = jax.device_get(h)
             d = h["descriptors"][0]
             steps = np.cumsum(h["env_steps"][0])
             exit_zone = in_exit_zone(d).any(axis=-1)
-            rows.append({"optimizer": label, **change, "method": method,
-                         "final_performance": float(h["max_fitness"][0, -1]),
-                         "coverage": float(h["coverage"][0, -1]),
-                         "reached_exit": bool(exit_zone.any()),
-                         "first_step_in_exit": float(steps[np.argmax(exit_zone)]) if exit_zone.any() else None,
-                         "env_steps": int(steps[-1]), "seconds": round(time.perf_counter() - start, 1)})
+            rows.append(
+                {
+                    "optimizer": label,
+                    **change,
+                    "method": method,
+                    "final_performance": float(h["max_fitness"][0, -1]),
+                    "coverage": float(h["coverage"][0, -1]),
+                    "reached_exit": bool(exit_zone.any()),
+                    "first_step_in_exit": float(steps[np.argmax(exit_zone)])
+                    if exit_zone.any()
+                    else None,
+                    "env_steps": int(steps[-1]),
+                    "seconds": round(time.perf_counter() - start, 1),
+                }
+            )
             print(rows[-1], flush=True)
     out = Path(__file__).parent / "results" / "qdpg_optimizer.json"
     out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps({"seed": args.seed, "num_critic_steps": small.pointmaze.num_critic_steps,
-                               "num_pg_steps": small.pointmaze.num_pg_steps, "runs": rows}, indent=2) + "\n")
+    out.write_text(
+        json.dumps(
+            {
+                "seed": args.seed,
+                "num_critic_steps": small.pointmaze.num_critic_steps,
+                "num_pg_steps": small.pointmaze.num_pg_steps,
+                "runs": rows,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
 
 
 if __name__ == "__main__":

@@ -28,11 +28,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from qdnb.book.provenance import git_sha
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import build_algorithms, make_task_env
 from qdnb.envs.pointmaze import WALLS, maze_regions
-from qdnb.provenance import git_sha
 from qdnb.qd.algorithms import run_seeds
-from qdnb.rl.qdpg_experiment import build_algorithms, make_task_env
-from qdnb.scale import config
+
 
 def shares(masks: dict[str, np.ndarray]) -> dict[str, float]:
     """Share of the points in each region, from ``maze_regions``'s masks."""
@@ -50,25 +51,53 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--methods", nargs="+", default=["D-PG", "QD-PG"])
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_reach.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_reach.json"
+    )
     args = parser.parse_args()
     cfg = config("ch3_qdpg", args.scale)
-    cfg = dataclasses.replace(cfg.with_seeds(1), pointmaze=dataclasses.replace(cfg.pointmaze, num_steps=args.steps))
+    cfg = dataclasses.replace(
+        cfg.with_seeds(1), pointmaze=dataclasses.replace(cfg.pointmaze, num_steps=args.steps)
+    )
     task = cfg.pointmaze
     if task.buffer_size < args.steps:
-        parser.error(f"the buffer ({task.buffer_size}) must hold every transition of {args.steps} steps")
+        parser.error(
+            f"the buffer ({task.buffer_size}) must hold every transition of {args.steps} steps"
+        )
     env = make_task_env(cfg, "pointmaze")
     algorithms = build_algorithms(cfg, "pointmaze", env)
-    out = {"scale": args.scale, "steps": args.steps, "seed": args.seed, "machine": platform.machine(),
-           "cpu_count": os.cpu_count(), "walls": [list(w) for w in WALLS],
-           "settings": {k: getattr(task, k) for k in ("optimizer", "learning_rate", "mutation_learning_rate",
-                                                      "num_critic_steps", "num_pg_steps", "archive_threshold",
-                                                      "archive_size", "num_actors")},
-           "commit": git_sha(), "methods": {}}
+    out = {
+        "scale": args.scale,
+        "steps": args.steps,
+        "seed": args.seed,
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "walls": [list(w) for w in WALLS],
+        "settings": {
+            k: getattr(task, k)
+            for k in (
+                "optimizer",
+                "learning_rate",
+                "mutation_learning_rate",
+                "num_critic_steps",
+                "num_pg_steps",
+                "archive_threshold",
+                "archive_size",
+                "num_actors",
+            )
+        },
+        "commit": git_sha(),
+        "methods": {},
+    }
     for method in args.methods:
         start = time.perf_counter()
-        states, _, history = run_seeds(algorithms[method], jax.random.PRNGKey(args.seed)[None],
-                                       task.num_iterations - 1, cfg.chunk_size, desc=f"pointmaze {method}")
+        states, _, history = run_seeds(
+            algorithms[method],
+            jax.random.PRNGKey(args.seed)[None],
+            task.num_iterations - 1,
+            cfg.chunk_size,
+            desc=f"pointmaze {method}",
+        )
         state = jax.tree.map(lambda x: np.asarray(x[0]), states)
         size = int(state.buffer.size)
         visited = state.buffer.data["state_descriptor"][:size]
@@ -84,7 +113,9 @@ def main() -> None:
             "archive": regions(archive),
             "episode_final_positions": regions(finals),
             "steps_when_first_above_the_upper_wall": int(above[0]) if len(above) else None,
-            "highest_visited_y_right_of_the_wall_end": float(visited[visited[:, 0] > WALLS[0][1], 1].max(initial=-1.0)),
+            "highest_visited_y_right_of_the_wall_end": float(
+                visited[visited[:, 0] > WALLS[0][1], 1].max(initial=-1.0)
+            ),
         }
         print(method, json.dumps(out["methods"][method], indent=1), flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)

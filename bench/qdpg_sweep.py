@@ -36,23 +36,40 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.rl.qdpg_experiment import run_environment, steps_to_exit
-from qdnb.scale import config
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import run_environment, steps_to_exit
 
 # Overrides of the scale's Point-Maze task, one factor at a time around "base".
-BASE = dict(optimizer="adam", learning_rate=3e-4, mutation_learning_rate=1e-3, num_critic_steps=100,
-            num_pg_steps=100, archive_threshold=0.1, archive_size=2_000, num_actors=4)
+BASE = dict(
+    optimizer="adam",
+    learning_rate=3e-4,
+    mutation_learning_rate=1e-3,
+    num_critic_steps=100,
+    num_pg_steps=100,
+    archive_threshold=0.1,
+    archive_size=2_000,
+    num_actors=4,
+)
 GRIDS = {
     "small": {
-        "base": {},  # QDax's rates (3e-4 critics and greedy actors, 1e-3 mutations), a lasting coarse archive
-        "archive-table-3.2": dict(archive_threshold=1e-4, archive_size=10_000),  # admits nearly every state
-        "steps-200": dict(num_critic_steps=200, num_pg_steps=200),  # twice the gradient steps per iteration
+        # QDax's rates (3e-4 critics and greedy actors, 1e-3 mutations), a lasting coarse archive
+        "base": {},
+        "archive-table-3.2": dict(
+            archive_threshold=1e-4, archive_size=10_000
+        ),  # admits nearly every state
+        "steps-200": dict(
+            num_critic_steps=200, num_pg_steps=200
+        ),  # twice the gradient steps per iteration
         "actors-8": dict(num_actors=8),  # twice the actors per iteration, half the iterations
-        "one-rate-5e-3": dict(learning_rate=5e-3, mutation_learning_rate=5e-3),  # the settings issue 14 reviewed
+        "one-rate-5e-3": dict(
+            learning_rate=5e-3, mutation_learning_rate=5e-3
+        ),  # the settings issue 14 reviewed
         "archive-0.03": dict(archive_threshold=0.03, archive_size=5_000),  # a finer lasting archive
-        # Round 2, added after round 1 picked "archive-table-3.2": one more factor changed around that pick.
-        "table-3.2+steps-200": dict(archive_threshold=1e-4, archive_size=10_000, num_critic_steps=200,
-                                    num_pg_steps=200),  # the gradient-step ratio, the largest departure left
+        # Round 2, added after round 1 picked "archive-table-3.2": one more factor changed around
+        # that pick.
+        "table-3.2+steps-200": dict(
+            archive_threshold=1e-4, archive_size=10_000, num_critic_steps=200, num_pg_steps=200
+        ),  # the gradient-step ratio, the largest departure left
         "table-3.2+actors-8": dict(archive_threshold=1e-4, archive_size=10_000, num_actors=8),
     },
     "tiny": {
@@ -67,7 +84,12 @@ TINY_BASE = dict(num_critic_steps=10, num_pg_steps=10, archive_size=256)
 
 def variant_config(grid: str, name: str, seeds: int):
     cfg = config("ch3_qdpg", SCALE[grid])
-    overrides = {**BASE, **(TINY_BASE if grid == "tiny" else {}), **GRIDS[grid][name], "num_steps": BUDGET[grid]}
+    overrides = {
+        **BASE,
+        **(TINY_BASE if grid == "tiny" else {}),
+        **GRIDS[grid][name],
+        "num_steps": BUDGET[grid],
+    }
     task = dataclasses.replace(cfg.pointmaze, **overrides)
     return dataclasses.replace(cfg.with_seeds(seeds), pointmaze=task), overrides
 
@@ -89,11 +111,21 @@ def summarise(result: dict, seconds: float) -> dict:
 def code_commit() -> str | None:
     """The checkout's commit (with ``+dirty`` for uncommitted changes), or None outside git."""
     import subprocess
+
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).parent).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=Path(__file__).parent).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).parent,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
     return head + ("+dirty" if dirty else "")
@@ -119,9 +151,15 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--methods", nargs="+", default=["QD-PG", "D-PG"])
     parser.add_argument("--only", nargs="+", help="run these variants only (in this order)")
-    parser.add_argument("--qdpg-budget-seconds", type=float, default=None,
-                        help="QD-PG's wall-time limit per run for the selection (default: none)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_sweep.json")
+    parser.add_argument(
+        "--qdpg-budget-seconds",
+        type=float,
+        default=None,
+        help="QD-PG's wall-time limit per run for the selection (default: none)",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_sweep.json"
+    )
     args = parser.parse_args()
     names = args.only or list(GRIDS[args.grid])
     unknown = set(names) - set(GRIDS[args.grid])
@@ -131,12 +169,19 @@ def main() -> None:
     out = json.loads(args.out.read_text()) if args.out.exists() else {}
     if out.get("grid_name") != args.grid or out.get("seeds") != args.seeds:
         out = {}
-    out.update({
-        "grid_name": args.grid, "seeds": args.seeds, "budget_steps": BUDGET[args.grid],
-        "base": {**BASE, **(TINY_BASE if args.grid == "tiny" else {})}, "grid": GRIDS[args.grid],
-        "device": jax.devices()[0].device_kind, "machine": platform.processor() or platform.machine(),
-        "cpu_count": __import__("os").cpu_count(), "selection_rule": __doc__.split("Selection rule, ")[1].strip(),
-    })
+    out.update(
+        {
+            "grid_name": args.grid,
+            "seeds": args.seeds,
+            "budget_steps": BUDGET[args.grid],
+            "base": {**BASE, **(TINY_BASE if args.grid == "tiny" else {})},
+            "grid": GRIDS[args.grid],
+            "device": jax.devices()[0].device_kind,
+            "machine": platform.processor() or platform.machine(),
+            "cpu_count": __import__("os").cpu_count(),
+            "selection_rule": __doc__.split("Selection rule, ")[1].strip(),
+        }
+    )
     runs = out.setdefault("runs", {})
     for name in names:
         cfg, overrides = variant_config(args.grid, name, args.seeds)
@@ -144,7 +189,9 @@ def main() -> None:
             if method in runs.get(name, {}):
                 continue
             start = time.perf_counter()
-            result = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=(method,))
+            result = run_environment(
+                cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=(method,)
+            )
             entry = summarise(result["methods"][method], time.perf_counter() - start)
             entry["settings"] = overrides
             entry["commit"] = code_commit()  # wall times depend on the code that ran them
@@ -152,8 +199,14 @@ def main() -> None:
             out["selected"] = select(runs, args.qdpg_budget_seconds)
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps(out, indent=2) + "\n")
-            print(name, method, json.dumps({k: entry[k] for k in ("steps_to_exit", "final_performance", "seconds")}),
-                  flush=True)
+            print(
+                name,
+                method,
+                json.dumps(
+                    {k: entry[k] for k in ("steps_to_exit", "final_performance", "seconds")}
+                ),
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -9,18 +9,17 @@ Writes bench/results/rollout.json.  Usage: python bench/rollout.py [--batches 25
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 
+from qdnb.book.provenance import device, versions
+from qdnb.core.io import atomic_write_json
 from qdnb.envs import make_env
 from qdnb.envs.rollout import evaluate_policies
-from qdnb.provenance import atomic_write_json, device, versions
-from qdnb.rl.networks import MLP, init_policies
+from qdnb.nets.mlp import MLP, init_policies
 
 
 def bare_scan(env, network):
@@ -59,7 +58,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--batches", type=int, nargs="+", default=[256, 1024])
     parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "rollout.json")
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "rollout.json"
+    )
     args = parser.parse_args()
 
     env = make_env("pointmaze")
@@ -71,23 +72,39 @@ def main() -> None:
         params = init_policies(network, jax.random.PRNGKey(0), batch, env.observation_size)
         key = jax.random.PRNGKey(1)
         # a second, separately compiled bare loop measures the noise of the comparison itself
-        t_qdnb, t_bare, t_control = timed_pair([qdnb_eval, bare, bare_scan(env, network)], params, key, args.repeats)
+        t_qdnb, t_bare, t_control = timed_pair(
+            [qdnb_eval, bare, bare_scan(env, network)], params, key, args.repeats
+        )
         steps = batch * env.episode_length
-        rows.append({
-            "batch": batch,
-            "episode_length": env.episode_length,
-            "qdnb_seconds": t_qdnb,
-            "bare_seconds": t_bare,
-            "qdnb_steps_per_second": steps / t_qdnb,
-            "bare_steps_per_second": steps / t_bare,
-            "overhead": t_qdnb / t_bare - 1.0,
-            "noise_control": t_control / t_bare - 1.0,
-        })
-        print(f"batch {batch}: qdnb {steps / t_qdnb:,.0f} steps/s, bare {steps / t_bare:,.0f} steps/s, "
-              f"overhead {100 * (t_qdnb / t_bare - 1):+.1f}% (bare vs bare: {100 * (t_control / t_bare - 1):+.1f}%)")
-    atomic_write_json(args.out, {"benchmark": "pointmaze policy evaluation", "policy": "MLP 2-16-16-2",
-                                 "device": device(), "versions": versions(), "repeats": args.repeats,
-                                 "results": rows})
+        rows.append(
+            {
+                "batch": batch,
+                "episode_length": env.episode_length,
+                "qdnb_seconds": t_qdnb,
+                "bare_seconds": t_bare,
+                "qdnb_steps_per_second": steps / t_qdnb,
+                "bare_steps_per_second": steps / t_bare,
+                "overhead": t_qdnb / t_bare - 1.0,
+                "noise_control": t_control / t_bare - 1.0,
+            }
+        )
+        print(
+            f"batch {batch}: qdnb {steps / t_qdnb:,.0f} steps/s, bare {steps / t_bare:,.0f} "
+            "steps/s, "
+            f"overhead {100 * (t_qdnb / t_bare - 1):+.1f}% (bare vs bare: "
+            f"{100 * (t_control / t_bare - 1):+.1f}%)"
+        )
+    atomic_write_json(
+        args.out,
+        {
+            "benchmark": "pointmaze policy evaluation",
+            "policy": "MLP 2-16-16-2",
+            "device": device(),
+            "versions": versions(),
+            "repeats": args.repeats,
+            "results": rows,
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from qdnb import runner
-from qdnb.scale import SCALES
+from qdnb.book import runner
+from qdnb.core.config import SCALES
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -18,9 +18,13 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--scale", default="tiny", help=f"one of {', '.join(SCALES)} (default: tiny)")
     run.add_argument("--seed", type=int, default=0)
     book = sub.add_parser("book", help="execute every notebook, then build the HTML book")
-    book.add_argument("--scale", default="small", help=f"one of {', '.join(SCALES)} (default: small)")
+    book.add_argument(
+        "--scale", default="small", help=f"one of {', '.join(SCALES)} (default: small)"
+    )
     book.add_argument("--seed", type=int, default=0)
-    book.add_argument("--force", action="store_true", help="re-execute even when an identical execution exists")
+    book.add_argument(
+        "--force", action="store_true", help="re-execute even when an identical execution exists"
+    )
     args = parser.parse_args(argv)
 
     try:

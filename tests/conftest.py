@@ -10,4 +10,25 @@ def pytest_collection_modifyitems(config, items):
     longest file (the notebooks, ch4_qdt after the ch4_reproducibility run whose
     repertoires it reuses) starts at once while the other worker takes the unit
     tests."""
-    items.sort(key=lambda item: item.get_closest_marker("notebook") is None)  # stable: order kept within each
+    items.sort(
+        key=lambda item: item.get_closest_marker("notebook") is None
+    )  # stable: order kept within each
+
+
+def pytest_runtest_setup(item):
+    """A notebook that nbmake runs in place (as a reader would, from a fresh kernel)
+    writes its run into a temporary directory, not over the runner's run of it."""
+    if item.path.suffix == ".ipynb":
+        import tempfile
+
+        item.config._qdnb_runs = os.environ.get("QDNB_RUNS")
+        os.environ["QDNB_RUNS"] = tempfile.mkdtemp(prefix="qdnb-nbmake-runs-")
+
+
+def pytest_runtest_teardown(item):
+    if item.path.suffix == ".ipynb":
+        previous = getattr(item.config, "_qdnb_runs", None)
+        if previous is None:
+            os.environ.pop("QDNB_RUNS", None)
+        else:
+            os.environ["QDNB_RUNS"] = previous

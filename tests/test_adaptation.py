@@ -8,7 +8,9 @@ import pytest
 from qdnb.qd.adaptation import bayes_opt, gp_posterior, random_goals, random_search, reach_scores
 
 _centres = (np.arange(10, dtype=np.float32) + 0.5) / 10
-GRID = np.stack(np.meshgrid(_centres, _centres, indexing="ij"), -1).reshape(-1, 2)  # 10x10 cells of [0, 1]^2
+GRID = np.stack(np.meshgrid(_centres, _centres, indexing="ij"), -1).reshape(
+    -1, 2
+)  # 10x10 cells of [0, 1]^2
 NUM_GOALS = 20
 # One compiled batched search, shared by the tests (compilation dominates their time).
 run_many = jax.jit(jax.vmap(bayes_opt, in_axes=(None, None, 0, 0)))
@@ -81,6 +83,7 @@ def test_gp_masked_slots_have_no_influence():
 
 
 # --- Bayesian optimisation --------------------------------------------------
+
 
 def test_bo_finds_planted_best_and_beats_random_search(toy):
     scores, keys = toy
@@ -171,9 +174,14 @@ def test_determinism_and_vmap_over_goals_matches_loop(toy):
 
 # --- helpers ----------------------------------------------------------------
 
+
 def test_reach_scores_and_random_goals():
-    positions = jnp.array([[[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], [[0.0, 5.0], [0.0, 4.0], [0.0, 3.0]]])
-    np.testing.assert_allclose(reach_scores(positions, jnp.array([1.0, 1.0])), [-1.0, -np.sqrt(5.0)], rtol=1e-6)
+    positions = jnp.array(
+        [[[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], [[0.0, 5.0], [0.0, 4.0], [0.0, 3.0]]]
+    )
+    np.testing.assert_allclose(
+        reach_scores(positions, jnp.array([1.0, 1.0])), [-1.0, -np.sqrt(5.0)], rtol=1e-6
+    )
     goals = random_goals(jax.random.key(5), 500, [-5.0, 0.0], [5.0, 40.0])
     assert goals.shape == (500, 2)
     assert float(goals[:, 0].min()) >= -5.0 and float(goals[:, 0].max()) <= 5.0

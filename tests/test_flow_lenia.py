@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from qdnb.lenia.flow_lenia import (
+from qdnb.models.lenia.flow_lenia import (
     FlowLeniaConfig,
     State,
     affinity,
@@ -59,8 +59,12 @@ def random_fields(key, cfg, saturate=True):
 def test_growth_on_hand_checked_points():
     mu, sigma = 0.3, 0.05
     assert float(growth(jnp.float32(mu), mu, sigma)) == pytest.approx(1.0)
-    assert float(growth(jnp.float32(mu + sigma), mu, sigma)) == pytest.approx(2 * np.exp(-0.5) - 1, abs=1e-6)
-    assert float(growth(jnp.float32(mu - 2 * sigma), mu, sigma)) == pytest.approx(2 * np.exp(-2) - 1, abs=1e-6)
+    assert float(growth(jnp.float32(mu + sigma), mu, sigma)) == pytest.approx(
+        2 * np.exp(-0.5) - 1, abs=1e-6
+    )
+    assert float(growth(jnp.float32(mu - 2 * sigma), mu, sigma)) == pytest.approx(
+        2 * np.exp(-2) - 1, abs=1e-6
+    )
     assert float(growth(jnp.float32(1.0), mu, sigma)) == pytest.approx(-1.0, abs=1e-6)
     assert float(growth(jnp.float32(0.0), 0.5, 0.001)) == -1.0
 
@@ -84,9 +88,19 @@ def test_kernels_follow_the_reference_formula_and_sum_to_one():
     b = np.array([[1.0, 0.3, 0.6], [0.2, 0.9, 0.001]])
     w = np.array([[0.1, 0.2, 0.15], [0.05, 0.3, 0.01]])
     for scale in (1.0, 0.25):
-        K = np.asarray(kernel_fields(jnp.float32(R), jnp.asarray(r, jnp.float32), jnp.asarray(a, jnp.float32),
-                                     jnp.asarray(b, jnp.float32), jnp.asarray(w, jnp.float32), size, size,
-                                     15.0, scale))
+        K = np.asarray(
+            kernel_fields(
+                jnp.float32(R),
+                jnp.asarray(r, jnp.float32),
+                jnp.asarray(a, jnp.float32),
+                jnp.asarray(b, jnp.float32),
+                jnp.asarray(w, jnp.float32),
+                size,
+                size,
+                15.0,
+                scale,
+            )
+        )
         for k in range(2):
             expected = reference_kernel(R, r[k], a[k], b[k], w[k], size, scale=scale)
             np.testing.assert_allclose(K[..., k], expected, rtol=2e-4, atol=1e-8)
@@ -104,11 +118,24 @@ def test_kernels_follow_the_reference_formula_and_sum_to_one():
 
     # a radius under one cell with rings far from the centre: the reference's float32
     # values underflow (exp(-100) at the centre), the log-space kernel is the float64 one
-    tiny = kernel_fields(jnp.float32(2.0), jnp.array([0.2]), jnp.array([[1.0, 1.0, 1.0]]),
-                         jnp.array([[0.5, 0.5, 0.5]]), jnp.array([[0.01, 0.01, 0.01]]), 16, 16, 15.0, 0.125)
-    expected = reference_kernel(2.0, 0.2, np.ones(3), np.full(3, 0.5), np.full(3, 0.01), 16, scale=0.125)
+    tiny = kernel_fields(
+        jnp.float32(2.0),
+        jnp.array([0.2]),
+        jnp.array([[1.0, 1.0, 1.0]]),
+        jnp.array([[0.5, 0.5, 0.5]]),
+        jnp.array([[0.01, 0.01, 0.01]]),
+        16,
+        16,
+        15.0,
+        0.125,
+    )
+    expected = reference_kernel(
+        2.0, 0.2, np.ones(3), np.full(3, 0.5), np.full(3, 0.01), 16, scale=0.125
+    )
     np.testing.assert_allclose(np.asarray(tiny[..., 0]), expected, atol=1e-6)
-    assert float(tiny[0, 0, 0]) == pytest.approx(1.0, abs=1e-5) and float(jnp.sum(tiny)) == pytest.approx(1.0)
+    assert float(tiny[0, 0, 0]) == pytest.approx(1.0, abs=1e-5) and float(
+        jnp.sum(tiny)
+    ) == pytest.approx(1.0)
 
 
 def test_initial_state_is_a_centred_patch_with_one_parameter_vector_or_one_per_cell():
@@ -120,9 +147,13 @@ def test_initial_state_is_a_centred_patch_with_one_parameter_vector_or_one_per_c
         assert state.A.shape == (33, 40, 1) and state.P.shape == (33, 40, 4)
         A, P = np.asarray(state.A[..., 0]), np.asarray(state.P)
         assert np.all(A[~inside] == 0) and np.all(P[~inside] == 0)
-        assert np.all((A[inside] > 0) & (A[inside] < 1)) and np.all((P[inside] >= 0) & (P[inside] < 1))
+        assert np.all((A[inside] > 0) & (A[inside] < 1)) and np.all(
+            (P[inside] >= 0) & (P[inside] < 1)
+        )
         vectors = np.unique(P[inside], axis=0)
-        assert len(vectors) == (1 if p0 == "patch" else inside.sum())  # one h for the patch, or one per cell
+        assert len(vectors) == (
+            1 if p0 == "patch" else inside.sum()
+        )  # one h for the patch, or one per cell
     assert FlowLeniaConfig().p0 == "patch"
 
 
@@ -169,34 +200,47 @@ def test_flow_follows_the_affinity_gradient_then_diffuses():
     cols = jnp.arange(32, dtype=jnp.float32)
     wave = jnp.sin(2 * jnp.pi * cols / 32)
     U = jnp.broadcast_to(wave[None, :, None], (32, 32, 1))
-    slope = 8 * jnp.sin(2 * jnp.pi / 32) * jnp.cos(2 * jnp.pi * cols / 32)  # central differences x 8
+    slope = (
+        8 * jnp.sin(2 * jnp.pi / 32) * jnp.cos(2 * jnp.pi * cols / 32)
+    )  # central differences x 8
     F = flow(U, jnp.zeros((32, 32, 1)), TORUS)
     np.testing.assert_allclose(F[..., 0, 1], jnp.broadcast_to(slope, (32, 32)), atol=1e-5)
     np.testing.assert_allclose(F[..., 0, 0], 0.0, atol=1e-6)
     A = 2.5 + 0.1 * U
     F = flow(U, A, TORUS)
     np.testing.assert_allclose(F[..., 0, 1], -0.1 * jnp.broadcast_to(slope, (32, 32)), atol=1e-5)
-    # walls: interior unchanged; at column 0 the outside is 0, so d/dx = 4 (U[1] - 0) x [1, 2, 1] sums
+    # walls: interior unchanged; at column 0 the outside is 0, so d/dx = 4 (U[1] - 0) x [1, 2, 1]
+    # sums
     F = flow(U, jnp.zeros((32, 32, 1)), CFG)
-    np.testing.assert_allclose(F[1:-1, 1:-1, 0, 1], jnp.broadcast_to(slope, (32, 32))[1:-1, 1:-1], atol=1e-5)
+    np.testing.assert_allclose(
+        F[1:-1, 1:-1, 0, 1], jnp.broadcast_to(slope, (32, 32))[1:-1, 1:-1], atol=1e-5
+    )
     np.testing.assert_allclose(F[5, 0, 0, 1], 4 * float(wave[1]), atol=1e-5)
-    np.testing.assert_allclose(F[0, 5, 0, 1], 3 / 4 * float(slope[5]), atol=1e-5)  # the row above is outside
+    np.testing.assert_allclose(
+        F[0, 5, 0, 1], 3 / 4 * float(slope[5]), atol=1e-5
+    )  # the row above is outside
 
 
 def test_the_flow_bound_keeps_matter_within_dt_times_reach_minus_s():
     """F is clipped to reach - s = 4.35 (the reference's bound) before dt F: no matter
     moves more than dt (reach - s) = 0.87 cells per axis in a step."""
     assert CFG.flow_bound == pytest.approx(4.35) and CFG.max_displacement == pytest.approx(0.87)
-    U = jnp.broadcast_to((40.0 * jnp.arange(32.0))[:, None, None], (32, 32, 1))  # a huge slope along rows
+    U = jnp.broadcast_to(
+        (40.0 * jnp.arange(32.0))[:, None, None], (32, 32, 1)
+    )  # a huge slope along rows
     F = flow(U, jnp.zeros((32, 32, 1)), TORUS)
     assert float(jnp.max(jnp.abs(F))) == pytest.approx(4.35)
     disp = displacement(F, TORUS)
     assert float(jnp.max(jnp.abs(disp))) == pytest.approx(0.87, rel=1e-6)
     raw = jnp.array([-100.0, -3.0, 0.0, 3.0, 50.0]).reshape(1, 5, 1, 1) * jnp.ones((1, 1, 1, 2))
     # reintegration's own bound on dt F (the reference clips both), then with the flow clipped first
-    np.testing.assert_allclose(displacement(raw, TORUS)[0, :, 0, 0], [-4.35, -0.6, 0.0, 0.6, 4.35], rtol=1e-6)
+    np.testing.assert_allclose(
+        displacement(raw, TORUS)[0, :, 0, 0], [-4.35, -0.6, 0.0, 0.6, 4.35], rtol=1e-6
+    )
     clipped = jnp.clip(raw, -TORUS.flow_bound, TORUS.flow_bound)
-    np.testing.assert_allclose(displacement(clipped, TORUS)[0, :, 0, 0], [-0.87, -0.6, 0.0, 0.6, 0.87], rtol=1e-6)
+    np.testing.assert_allclose(
+        displacement(clipped, TORUS)[0, :, 0, 0], [-0.87, -0.6, 0.0, 0.6, 0.87], rtol=1e-6
+    )
 
 
 def test_no_matter_moves_more_than_the_bound_along_real_episodes(episodes):
@@ -229,7 +273,11 @@ def test_walls_keep_matter_inside_the_grid():
 def test_matter_moves_by_its_displacement():
     """A blob displaced by whole cells (2 down, 1 left) keeps its shape's centre of
     mass exactly 2 rows down and 1 column left (rows are axis 0, columns axis 1)."""
-    A = jnp.zeros((32, 32, 1)).at[10:15, 12:20, 0].set(jax.random.uniform(jax.random.PRNGKey(0), (5, 8)))
+    A = (
+        jnp.zeros((32, 32, 1))
+        .at[10:15, 12:20, 0]
+        .set(jax.random.uniform(jax.random.PRNGKey(0), (5, 8)))
+    )
     P = jnp.zeros((32, 32, 3))
     disp = jnp.broadcast_to(jnp.array([2.0, -1.0]), (32, 32, 1, 2))
     new_a, _ = jax.jit(reintegrate, static_argnames="cfg")(A, P, disp, jax.random.PRNGKey(1), CFG)
@@ -293,9 +341,13 @@ def test_parameters_are_drawn_proportionally_to_the_incoming_matter():
     assert set(np.unique(np.asarray(got))) <= {0.5, 1.0}
     assert float(jnp.mean(got == 1.0)) == pytest.approx(30 / 35, abs=0.015)
     # the senders' own cells each receive only from themselves
-    assert np.all(np.asarray(new_p[:, 5, 5, 0]) == 1.0) and np.all(np.asarray(new_p[:, 5, 7, 0]) == 0.5)
+    assert np.all(np.asarray(new_p[:, 5, 5, 0]) == 1.0) and np.all(
+        np.asarray(new_p[:, 5, 7, 0]) == 0.5
+    )
     # equal parcels: an even draw
-    _, even = jax.jit(jax.vmap(lambda k: reintegrate(A.at[5, 5, 0].set(5.0), P, disp, k, cfg)))(keys)
+    _, even = jax.jit(jax.vmap(lambda k: reintegrate(A.at[5, 5, 0].set(5.0), P, disp, k, cfg)))(
+        keys
+    )
     assert float(jnp.mean(even[:, 5, 6, 0] == 1.0)) == pytest.approx(0.5, abs=0.03)
 
 
@@ -315,15 +367,21 @@ def test_the_default_mixing_is_deterministic_and_the_fresh_key_variant_is_not():
         np.testing.assert_array_equal(again.A, first.A)
         np.testing.assert_array_equal(again.P, first.P)
     fresh = dataclasses.replace(cfg, mix="stoch_fresh")
-    maps = jax.vmap(lambda k: run(system, state, k, fresh).P)(jax.random.split(jax.random.PRNGKey(1), 200))
+    maps = jax.vmap(lambda k: run(system, state, k, fresh).P)(
+        jax.random.split(jax.random.PRNGKey(1), 200)
+    )
     assert len(np.unique(np.asarray(maps).reshape(200, -1), axis=0)) > 1
-    np.testing.assert_array_equal(run(system, state, jax.random.PRNGKey(cfg.mix_seed), fresh).P, first.P)
+    np.testing.assert_array_equal(
+        run(system, state, jax.random.PRNGKey(cfg.mix_seed), fresh).P, first.P
+    )
 
 
 def test_same_key_same_episode_and_another_key_differs(episodes):
     systems, ep = episodes
     systems2, ep2 = simulate_batch(jax.random.PRNGKey(0), CFG, BATCH)
-    for x, y in zip(jax.tree_util.tree_leaves((systems, ep)), jax.tree_util.tree_leaves((systems2, ep2))):
+    for x, y in zip(
+        jax.tree_util.tree_leaves((systems, ep)), jax.tree_util.tree_leaves((systems2, ep2))
+    ):
         np.testing.assert_array_equal(x, y)
     _, ep3 = simulate_batch(jax.random.PRNGKey(1), CFG, BATCH)
     assert not np.array_equal(ep.A, ep3.A) and not np.array_equal(ep.P, ep3.P)

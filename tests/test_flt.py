@@ -10,21 +10,34 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from qdnb.lenia import flow_lenia as fl
-from qdnb.lenia.experiment import (
+from qdnb.chapters.ch5_flow_lenia import (
     SurpriseSearch,
-    evaluate,
     SystemCriteria,
     centre_of_mass,
+    evaluate,
     pattern_descriptors,
     pick_system,
     world_statistics,
 )
-from qdnb.lenia.flt import FLT, FLTConfig, init_params, loss_fn, make_model, make_train_step, train, unroll
-from qdnb.qdt.train import make_optimizer
+from qdnb.models.lenia import flow_lenia as fl
+from qdnb.models.lenia.flt import (
+    FLT,
+    FLTConfig,
+    init_params,
+    loss_fn,
+    make_model,
+    make_train_step,
+    train,
+    unroll,
+)
+from qdnb.nets.transformer import make_optimizer
 
-WORLD = fl.FlowLeniaConfig(height=16, width=16, kernels=2, patch_size=5, steps=6, radius_scale=16 / 128)
-CFG = FLTConfig(embed_dim=16, num_layers=2, num_heads=2, features=(4, 8), batch_size=2, train_steps=3)
+WORLD = fl.FlowLeniaConfig(
+    height=16, width=16, kernels=2, patch_size=5, steps=6, radius_scale=16 / 128
+)
+CFG = FLTConfig(
+    embed_dim=16, num_layers=2, num_heads=2, features=(4, 8), batch_size=2, train_steps=3
+)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +73,9 @@ def test_a_later_frame_never_changes_an_earlier_prediction(model_params, episode
         changed = inputs.at[:, k].add(jax.random.uniform(jax.random.PRNGKey(k), inputs.shape[2:]))
         pred = model.apply(params, changed)
         np.testing.assert_array_equal(np.asarray(pred[:, :k]), np.asarray(base[:, :k]))
-        assert float(jnp.max(jnp.abs(pred[:, k] - base[:, k]))) > 1e-6  # frame k does inform x_{k+1}
+        assert (
+            float(jnp.max(jnp.abs(pred[:, k] - base[:, k]))) > 1e-6
+        )  # frame k does inform x_{k+1}
 
 
 def test_cached_unroll_matches_full_recomputation(model_params, episodes):
@@ -69,21 +84,26 @@ def test_cached_unroll_matches_full_recomputation(model_params, episodes):
     full = unroll(model, params, episodes[:, 0], cached=False)
     np.testing.assert_allclose(np.asarray(cached), np.asarray(full), atol=1e-5)
     # the first prediction only sees x_0: it is the teacher-forced one
-    np.testing.assert_allclose(np.asarray(cached[:, 0]), np.asarray(model.apply(params, episodes[:, :-1])[:, 0]),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(cached[:, 0]), np.asarray(model.apply(params, episodes[:, :-1])[:, 0]), atol=1e-5
+    )
 
 
 def test_loss_is_eq_5_3_up_to_a_constant(model_params, episodes):
     model, params = model_params
     pred = model.apply(params, episodes[:, :-1])
     a, p = episodes[:, 1:, ..., :1], episodes[:, 1:, ..., 1:]
-    per_step = jnp.sum((a - pred[..., :1]) ** 2, axis=(2, 3, 4)) + jnp.sum((p - pred[..., 1:]) ** 2, axis=(2, 3, 4))
+    per_step = jnp.sum((a - pred[..., :1]) ** 2, axis=(2, 3, 4)) + jnp.sum(
+        (p - pred[..., 1:]) ** 2, axis=(2, 3, 4)
+    )
     eq53 = jnp.mean(per_step)  # mean over t (and episodes) of the squared norms
     cells = 16 * 16 * (1 + WORLD.kernels)
     assert float(loss_fn(model, params, episodes)) == pytest.approx(float(eq53) / cells, rel=1e-5)
     # the per-modality ablation: each modality's mean squared error, summed
     both = jnp.mean((a - pred[..., :1]) ** 2) + jnp.mean((p - pred[..., 1:]) ** 2)
-    assert float(loss_fn(model, params, episodes, per_modality=True)) == pytest.approx(float(both), rel=1e-5)
+    assert float(loss_fn(model, params, episodes, per_modality=True)) == pytest.approx(
+        float(both), rel=1e-5
+    )
 
 
 def test_one_training_step_lowers_the_loss_on_a_fixed_batch(model_params, episodes):
@@ -101,9 +121,12 @@ def test_training_is_deterministic_and_tracks_the_mean_frame(system):
     a = train(model, CFG, WORLD, system, jax.random.PRNGKey(5), progress=False)
     b = train(model, CFG, WORLD, system, jax.random.PRNGKey(5), progress=False)
     np.testing.assert_array_equal(a.losses, b.losses)
-    assert a.losses.shape == (CFG.train_steps,) and a.episodes_seen == CFG.train_steps * CFG.batch_size
+    assert (
+        a.losses.shape == (CFG.train_steps,) and a.episodes_seen == CFG.train_steps * CFG.batch_size
+    )
     assert a.mean_frames.shape == (WORLD.steps + 1, 16, 16, 1 + WORLD.kernels)
-    # the mean frame at t = 0 is the mean initial state: matter only on the patch, total mass ~ patch area / 2
+    # the mean frame at t = 0 is the mean initial state: matter only on the patch, total mass ~
+    # patch area / 2
     assert float(a.mean_frames[0, ..., 0].sum()) == pytest.approx(25 * 0.5, rel=0.3)
     assert float(a.mean_frames[0, 0, 0, 0]) == 0.0
     assert a.max_drift < 1e-5
@@ -117,15 +140,24 @@ def test_training_is_deterministic_and_tracks_the_mean_frame(system):
 def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
     model, params = model_params
     mean_frames = np.zeros((WORLD.steps + 1, 16, 16, 1 + WORLD.kernels), np.float32)
-    out = evaluate(model, params, WORLD, system, mean_frames, jax.random.PRNGKey(3), episodes=5, batch=2)
+    out = evaluate(
+        model, params, WORLD, system, mean_frames, jax.random.PRNGKey(3), episodes=5, batch=2
+    )
     for name in ("flt", "persistence", "mean_frame"):
         assert out["errors"][name]["A"].shape == (5, WORLD.steps)
     truth = out["truth"]  # the first three episodes
-    # an all-zero mean frame scores the mean square of the truth; persistence scores the change since x_0
-    np.testing.assert_allclose(out["errors"]["mean_frame"]["A"][:3], np.mean(truth[:, 1:, ..., :1] ** 2, axis=(2, 3, 4)),
-                               rtol=1e-5)
-    np.testing.assert_allclose(out["errors"]["persistence"]["A"][:3],
-                               np.mean((truth[:, 1:, ..., :1] - truth[:, :1, ..., :1]) ** 2, axis=(2, 3, 4)), rtol=1e-5)
+    # an all-zero mean frame scores the mean square of the truth; persistence scores the change
+    # since x_0
+    np.testing.assert_allclose(
+        out["errors"]["mean_frame"]["A"][:3],
+        np.mean(truth[:, 1:, ..., :1] ** 2, axis=(2, 3, 4)),
+        rtol=1e-5,
+    )
+    np.testing.assert_allclose(
+        out["errors"]["persistence"]["A"][:3],
+        np.mean((truth[:, 1:, ..., :1] - truth[:, :1, ..., :1]) ** 2, axis=(2, 3, 4)),
+        rtol=1e-5,
+    )
     assert out["drift"].shape == (5,) and out["drift"].max() < 1e-5
 
 
@@ -141,22 +173,40 @@ def test_pattern_descriptors_on_hand_made_patterns():
         np.testing.assert_allclose(np.asarray(centre_of_mass(blob, torus)), [4.0, 4.0], atol=1e-4)
         moved = jnp.zeros((h, w, 1)).at[4, 7, 0].set(1.0)  # 3 cells to the right
         displacement, spread = np.asarray(pattern_descriptors(blob, moved, torus))
-        assert displacement == pytest.approx(3 / 16, abs=1e-4) and spread == pytest.approx(0.0, abs=1e-4)
-        pair = jnp.zeros((h, w, 1)).at[4, 2, 0].set(1.0).at[4, 6, 0].set(1.0)  # two cells, 2 either side of column 4
+        assert displacement == pytest.approx(3 / 16, abs=1e-4) and spread == pytest.approx(
+            0.0, abs=1e-4
+        )
+        pair = (
+            jnp.zeros((h, w, 1)).at[4, 2, 0].set(1.0).at[4, 6, 0].set(1.0)
+        )  # two cells, 2 either side of column 4
         displacement, spread = np.asarray(pattern_descriptors(blob, pair, torus))
-        assert displacement == pytest.approx(0.0, abs=1e-4) and spread == pytest.approx(2 / 16, abs=1e-4)
+        assert displacement == pytest.approx(0.0, abs=1e-4) and spread == pytest.approx(
+            2 / 16, abs=1e-4
+        )
     far = jnp.zeros((h, w, 1)).at[4, 14, 0].set(1.0)
-    assert float(pattern_descriptors(blob, far, torus=True)[0]) == pytest.approx(6 / 16, abs=1e-4)  # across the edge
-    assert float(pattern_descriptors(blob, far, torus=False)[0]) == pytest.approx(10 / 16, abs=1e-4)  # walls: no wrap
+    assert float(pattern_descriptors(blob, far, torus=True)[0]) == pytest.approx(
+        6 / 16, abs=1e-4
+    )  # across the edge
+    assert float(pattern_descriptors(blob, far, torus=False)[0]) == pytest.approx(
+        10 / 16, abs=1e-4
+    )  # walls: no wrap
 
 
 def test_surprise_search_keeps_the_most_surprising_per_cell(system):
     model = make_model(WORLD, CFG)
     params = init_params(model, jax.random.PRNGKey(0))
-    search = SurpriseSearch(model, WORLD, batch_size=4, bins=(3, 3), max_displacement=0.5, min_spread=0.0,
-                            max_spread=0.5)
-    repertoire, history = search.run(params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1,
-                                     progress=False)
+    search = SurpriseSearch(
+        model,
+        WORLD,
+        batch_size=4,
+        bins=(3, 3),
+        max_displacement=0.5,
+        min_spread=0.0,
+        max_spread=0.5,
+    )
+    repertoire, history = search.run(
+        params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1, progress=False
+    )
     assert history["surprise"].shape == (12,) and history["descriptors"].shape == (12, 2)
     filled = np.asarray(repertoire.filled)
     assert filled.sum() >= 1
@@ -165,10 +215,17 @@ def test_surprise_search_keeps_the_most_surprising_per_cell(system):
     desc = np.clip(history["descriptors"], 0.0, 0.5)
     cells = np.argmin(((desc[:, None] - centroids[None]) ** 2).sum(-1), axis=1)
     for c in np.flatnonzero(filled):
-        assert float(repertoire.fitnesses[c]) == pytest.approx(history["surprise"][cells == c].max())
+        assert float(repertoire.fitnesses[c]) == pytest.approx(
+            history["surprise"][cells == c].max()
+        )
     # genotypes stay valid initial states
-    assert float(repertoire.genotypes["a"].min()) >= 0.0 and float(repertoire.genotypes["a"].max()) <= 1.0
-    again, history2 = search.run(params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1, progress=False)
+    assert (
+        float(repertoire.genotypes["a"].min()) >= 0.0
+        and float(repertoire.genotypes["a"].max()) <= 1.0
+    )
+    again, history2 = search.run(
+        params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1, progress=False
+    )
     np.testing.assert_array_equal(history["surprise"], history2["surprise"])
 
 
@@ -180,13 +237,20 @@ def test_world_statistics_on_hand_made_episodes():
     A[0, :, ..., 0] = still  # probe 0 never moves
     A[1, 0, ..., 0] = still
     A[1, 1, ..., 0] = [[0.0, 1.0], [0.0, 0.0]]
-    A[1, 2, ..., 0] = [[0.0, 0.0], [1.0, 0.0]]  # probe 1 ends elsewhere, having moved in its last step
+    A[1, 2, ..., 0] = [
+        [0.0, 0.0],
+        [1.0, 0.0],
+    ]  # probe 1 ends elsewhere, having moved in its last step
     stats = world_statistics(jnp.asarray(A), window=1)
     energy = 2 / 8  # mean of (A^T)^2 over probes and cells
     assert stats["occupancy"] == pytest.approx(0.25)
-    assert stats["diversity"] == pytest.approx(np.mean(np.var(A[:, -1, ..., 0], axis=0)) / energy)  # (2 x 0.25) / 4
+    assert stats["diversity"] == pytest.approx(
+        np.mean(np.var(A[:, -1, ..., 0], axis=0)) / energy
+    )  # (2 x 0.25) / 4
     assert stats["diversity"] == pytest.approx(0.5)
-    assert stats["change"] == pytest.approx((2 / 8) / energy)  # probe 1's last step moved all its mass: 2 cells of 1
+    assert stats["change"] == pytest.approx(
+        (2 / 8) / energy
+    )  # probe 1's last step moved all its mass: 2 cells of 1
     same = world_statistics(jnp.asarray(np.repeat(A[:1], 2, axis=0)), window=2)
     assert same["diversity"] == 0.0 and same["change"] == 0.0  # identical probes, nothing moves
 
@@ -199,13 +263,24 @@ def test_pick_system_keeps_the_first_system_meeting_every_criterion():
     assert np.all(choice.statistics["replay"] == 0.0)  # deterministic mixing: replays are identical
     assert all(v.shape == (3,) for v in choice.statistics.values())
     settled = choice.statistics["change"]
-    # only "settled" can fail: the first system settled below a threshold between the candidates' values
+    # only "settled" can fail: the first system settled below a threshold between the candidates'
+    # values
     threshold = float(np.sort(settled)[1])
-    only = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2,
-                       criteria=SystemCriteria(max_growth=1e9, min_diversity=0.0, max_change=threshold))
+    only = pick_system(
+        jax.random.PRNGKey(0),
+        WORLD,
+        candidates=3,
+        probes=2,
+        criteria=SystemCriteria(max_growth=1e9, min_diversity=0.0, max_change=threshold),
+    )
     assert only.index == int(np.flatnonzero(settled <= threshold)[0])
-    strict = pick_system(jax.random.PRNGKey(0), WORLD, candidates=3, probes=2,
-                         criteria=SystemCriteria(max_growth=1e-9, min_diversity=1.0, max_change=1e-12))
+    strict = pick_system(
+        jax.random.PRNGKey(0),
+        WORLD,
+        candidates=3,
+        probes=2,
+        criteria=SystemCriteria(max_growth=1e-9, min_diversity=1.0, max_change=1e-12),
+    )
     # nothing qualifies: among those meeting the most criteria, the most settled
     count = sum(v.astype(int) for v in strict.passed.values())
     best = np.flatnonzero(count == count.max())
@@ -230,13 +305,21 @@ def test_config_errors():
 
 
 def test_chapter_config_errors():
-    from qdnb.scale import FlowLeniaChapterConfig, config, lenia_world
+    from qdnb.book.registry import config
+    from qdnb.chapters.ch5_flow_lenia import FlowLeniaChapterConfig, lenia_world
 
     small = config("ch5_flow_lenia", "small")
-    # the patch (40 at 128) and the kernel radii scale with the grid; Table 5.1's ranges stay as printed
-    assert small.world.patch_size == 10 and small.world.radius_scale == 0.25 and small.world.R_range == (2.0, 25.0)
+    # the patch (40 at 128) and the kernel radii scale with the grid; Table 5.1's ranges stay as
+    # printed
+    assert (
+        small.world.patch_size == 10
+        and small.world.radius_scale == 0.25
+        and small.world.R_range == (2.0, 25.0)
+    )
     assert config("ch5_flow_lenia", "paper").world == fl.FlowLeniaConfig()  # the thesis's world
     with pytest.raises(ValueError, match="at least 64"):
         dataclasses.replace(small, eval_episodes=32)
     with pytest.raises(ValueError, match="steps must be at least 50"):
-        FlowLeniaChapterConfig(num_seeds=1, world=dataclasses.replace(lenia_world(16), steps=10), flt=CFG)
+        FlowLeniaChapterConfig(
+            num_seeds=1, world=dataclasses.replace(lenia_world(16), steps=10), flt=CFG
+        )

@@ -22,7 +22,11 @@ def cheetah():
 def test_resets_are_deterministic_and_differ_by_key(ant, cheetah):
     for env in (ant, cheetah):
         reset = jax.jit(env.reset)
-        a, b, c = reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(1))
+        a, b, c = (
+            reset(jax.random.PRNGKey(0)),
+            reset(jax.random.PRNGKey(0)),
+            reset(jax.random.PRNGKey(1)),
+        )
         np.testing.assert_array_equal(a.obs, b.obs)
         assert not np.allclose(a.obs, c.obs)
         assert a.obs.shape == (env.observation_size,)
@@ -33,20 +37,26 @@ def test_ant_omni_descriptor_and_fitness(ant):
         return jnp.tanh(params * jnp.ones(ant.action_size) + 0.1 * obs[: ant.action_size])
 
     params = jnp.array([0.0, 0.5, 3.0])
-    ev = jax.jit(lambda p, k: evaluate_policies(ant, policy, p, k, return_trajectory=True))(params, jax.random.PRNGKey(0))
+    ev = jax.jit(lambda p, k: evaluate_policies(ant, policy, p, k, return_trajectory=True))(
+        params, jax.random.PRNGKey(0)
+    )
     assert ev.descriptor.shape == (3, 2)
     assert np.all(np.abs(ev.descriptor) <= 15.0)
     actions = np.clip(np.asarray(ev.trajectory["action"]), -1, 1)
     np.testing.assert_allclose(ev.fitness, -np.linalg.norm(actions, axis=-1).sum(axis=1), rtol=1e-5)
     # the descriptor is where the torso ended: the last state descriptor
-    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"])[:, -1], rtol=1e-6)
+    np.testing.assert_allclose(
+        ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"])[:, -1], rtol=1e-6
+    )
     assert np.all(np.asarray(ev.length) == 12)
 
 
 def test_halfcheetah_contacts_are_real(cheetah):
     step = jax.jit(cheetah.step)
     sys = cheetah.brax_env.sys
-    still = cheetah.reset(jax.random.PRNGKey(0)).replace(core=cheetah.brax_env.pipeline_init(sys.init_q, jnp.zeros(sys.qd_size())))
+    still = cheetah.reset(jax.random.PRNGKey(0)).replace(
+        core=cheetah.brax_env.pipeline_init(sys.init_q, jnp.zeros(sys.qd_size()))
+    )
     for _ in range(20):  # let it settle on the ground with no torque
         still = step(still, jnp.zeros(cheetah.action_size))
     np.testing.assert_array_equal(still.state_descriptor, [1.0, 1.0])
@@ -63,10 +73,13 @@ def test_halfcheetah_descriptor_is_the_fraction_of_steps_in_contact(cheetah):
         return params * jnp.ones(cheetah.action_size)
 
     ev = jax.jit(lambda p, k: evaluate_policies(cheetah, policy, p, k, return_trajectory=True))(
-        jnp.array([0.0, 1.0]), jax.random.PRNGKey(3))
+        jnp.array([0.0, 1.0]), jax.random.PRNGKey(3)
+    )
     assert ev.descriptor.shape == (2, 2)
     assert np.all((ev.descriptor >= 0) & (ev.descriptor <= 1))
-    np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"]).mean(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(
+        ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"]).mean(axis=1), rtol=1e-6
+    )
 
 
 def test_halfcheetah_reward_is_forward_speed_minus_action_norm(cheetah):
@@ -99,7 +112,9 @@ def test_ant_omni_ends_when_the_torso_leaves_its_healthy_band(ant):
     assert not bool(ant.healthy(at_height(0.1).core))  # lying on the floor
     assert not bool(ant.healthy(at_height(1.5).core))  # in the air
     assert not bool(step(at_height(0.75), zero).done)  # standing: the episode goes on
-    assert bool(step(at_height(1.5), zero).done)  # one step later it is still above 1.0: the episode ends
+    assert bool(
+        step(at_height(1.5), zero).done
+    )  # one step later it is still above 1.0: the episode ends
     # in a rollout, the steps after the end do not count
     from qdnb.envs.rollout import tally_start, tally_step
 
@@ -129,7 +144,9 @@ def test_ant_omni_survival_reward_makes_an_early_end_cost_one_per_step_not_lived
     ev = tally_evaluation(ant, jax.tree.map(lambda x: x[None], tally))
     assert int(ev.length[0]) == 1
     np.testing.assert_allclose(ev.fitness[0], -np.sqrt(2.0) - (ant.episode_length - 1), rtol=1e-6)
-    assert float(ev.fitness[0]) < 0.0  # standing still with no torque for the whole episode scores 0
+    assert (
+        float(ev.fitness[0]) < 0.0
+    )  # standing still with no torque for the whole episode scores 0
 
 
 def test_resets_follow_brax_v1_uniform_joint_noise_with_the_root_at_rest(ant, cheetah):
@@ -143,7 +160,9 @@ def test_resets_follow_brax_v1_uniform_joint_noise_with_the_root_at_rest(ant, ch
         for x in (dq[:, root_q:], qd[:, root_qd:]):
             assert np.all(np.abs(x) <= 0.1 + 1e-6)
             assert np.abs(x).max() > 0.09  # uniform on [-0.1, 0.1]: its edges are reached ...
-            assert abs(np.mean(np.abs(x)) - 0.05) < 0.005  # ... and E|U| = 0.05 (a Gaussian of sd 0.1 gives 0.08)
+            assert (
+                abs(np.mean(np.abs(x)) - 0.05) < 0.005
+            )  # ... and E|U| = 0.05 (a Gaussian of sd 0.1 gives 0.08)
 
 
 def test_ant_omni_observes_neither_x_nor_y(ant):
@@ -158,9 +177,15 @@ def test_ant_omni_observes_neither_x_nor_y(ant):
 def test_a_bounded_box_clips_descriptors_and_holds_cells_and_goals():
     from qdnb.qd.cvt import cvt_centroids
 
-    env = make_env("ant_omni", episode_length=12, descriptor_low=(-2.5, -2.5), descriptor_high=(2.5, 2.5))
-    np.testing.assert_allclose(env.behaviour_descriptor(jnp.array([4.0, -1.0]), None, 12), [2.5, -1.0])
-    centroids = np.asarray(cvt_centroids(jax.random.PRNGKey(0), 16, env.descriptor_low, env.descriptor_high, 2000, 5))
+    env = make_env(
+        "ant_omni", episode_length=12, descriptor_low=(-2.5, -2.5), descriptor_high=(2.5, 2.5)
+    )
+    np.testing.assert_allclose(
+        env.behaviour_descriptor(jnp.array([4.0, -1.0]), None, 12), [2.5, -1.0]
+    )
+    centroids = np.asarray(
+        cvt_centroids(jax.random.PRNGKey(0), 16, env.descriptor_low, env.descriptor_high, 2000, 5)
+    )
     assert np.all(np.abs(centroids) <= 2.5) and np.abs(centroids).max() > 1.0
     with pytest.raises(ValueError, match="low < high"):
         make_env("ant_omni", descriptor_low=(1.0, 1.0), descriptor_high=(0.0, 2.0))

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from qdnb.loops import scan_in_chunks
+from qdnb.core.loops import scan_in_chunks
 
 
 def test_chunked_scan_equals_one_scan():
@@ -35,9 +35,10 @@ def test_a_map_elites_run_compiles_its_simulation_once(caplog):
     import jax
 
     from qdnb.envs.pointmaze import PointMaze
-    from qdnb.qd.algorithms import MapElites, PGAMapElites, run_seeds
+    from qdnb.nets.mlp import MLP
+    from qdnb.qd.algorithms import PolicyMapElites, run_seeds
     from qdnb.qd.cvt import grid_centroids
-    from qdnb.rl.networks import MLP
+    from qdnb.qd.pga import PGAMapElites
     from qdnb.rl.td3 import TD3Config
 
     traces = []
@@ -49,21 +50,41 @@ def test_a_map_elites_run_compiles_its_simulation_once(caplog):
             return super().step(state, action)
 
     env = CountingMaze(episode_length=20)
-    common = dict(env=env, network=MLP((4, 2)), batch_size=8, iso_sigma=0.1, line_sigma=0.2,
-                  centroids=grid_centroids((4, 4), (-1, -1), (1, 1)))
+    common = dict(
+        env=env,
+        network=MLP((4, 2)),
+        batch_size=8,
+        iso_sigma=0.1,
+        line_sigma=0.2,
+        centroids=grid_centroids((4, 4), (-1, -1), (1, 1)),
+    )
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    for algo in (MapElites(**common), PGAMapElites(**common, td3_config=TD3Config(batch_size=8, critic_hidden=(8,)),
-                                                   num_critic_steps=2, num_pg_steps=2, buffer_size=2000)):
+    for algo in (
+        PolicyMapElites(**common),
+        PGAMapElites(
+            **common,
+            td3_config=TD3Config(batch_size=8, critic_hidden=(8,)),
+            num_critic_steps=2,
+            num_pg_steps=2,
+            buffer_size=2000,
+        ),
+    ):
         traces.clear()
         states, _, history = run_seeds(algo, keys, 4, 5, progress=False)  # 5 evaluations, one chunk
         assert len(traces) == 1, type(algo).__name__
         assert history["coverage"].shape == (2, 5)
-        assert np.all(np.asarray(history["env_steps"]) == 8 * 20)  # the first step is the initial batch
+        assert np.all(
+            np.asarray(history["env_steps"]) == 8 * 20
+        )  # the first step is the initial batch
 
     caplog.set_level(logging.WARNING)
     with jax.log_compiles():
-        run_seeds(MapElites(**common), keys, 6, 4, progress=False)  # 7 evaluations in chunks of 4: 4 + 3
-    compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling jit(")]
+        run_seeds(
+            PolicyMapElites(**common), keys, 6, 4, progress=False
+        )  # 7 evaluations in chunks of 4: 4 + 3
+    compiled = [
+        r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling jit(")
+    ]
     loops = [m for m in compiled if m.startswith(("Compiling jit(chunk)", "Compiling jit(masked)"))]
     assert len(loops) == 1, compiled
     assert not any(m.startswith("Compiling jit(init") for m in compiled)
@@ -79,7 +100,7 @@ def test_a_remainder_chunk_gives_the_same_numbers_as_one_scan():
 
 
 def test_map_concurrently_keeps_names_order_and_results_and_raises():
-    from qdnb.loops import map_concurrently
+    from qdnb.core.loops import map_concurrently
 
     f = lambda name: float(jnp.sum(jax.random.normal(jax.random.PRNGKey(len(name)), (100,))))
     names = ("ant_omni", "halfcheetah_uni", "pointmaze")

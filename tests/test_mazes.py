@@ -41,7 +41,9 @@ def _driver(env):
 
         return jax.lax.scan(body, state, None, length=PUSH_STEPS)[1]
 
-    return lambda xy, v: jax.tree.map(np.asarray, drive(jnp.asarray(xy, jnp.float32), jnp.asarray(v, jnp.float32)))
+    return lambda xy, v: jax.tree.map(
+        np.asarray, drive(jnp.asarray(xy, jnp.float32), jnp.asarray(v, jnp.float32))
+    )
 
 
 @pytest.fixture(scope="module")
@@ -69,12 +71,16 @@ def test_walls_only_add_torso_and_lower_leg_contacts(maze, trap):
 
     bare = make_env("ant_omni")
     # one contact per colliding pair: 4 foot-floor pairs, then 5 per wall
-    counts = [jax.eval_shape(contacts(e), e.brax_env.sys.init_q).dist.shape[0] for e in (bare, maze, trap)]
+    counts = [
+        jax.eval_shape(contacts(e), e.brax_env.sys.init_q).dist.shape[0] for e in (bare, maze, trap)
+    ]
     assert counts == [4, 4 + 5 * 7, 4 + 5 * 3]
     model = maze.brax_env.sys.mj_model
     assert model.ngeom == bare.brax_env.sys.mj_model.ngeom + 7
     c = jax.jit(contacts(maze))(maze.brax_env.sys.init_q)
-    pairs = {(model.geom(int(g1)).name, model.geom(int(g2)).name) for g1, g2 in zip(c.geom1, c.geom2)}
+    pairs = {
+        (model.geom(int(g1)).name, model.geom(int(g2)).name) for g1, g2 in zip(c.geom1, c.geom2)
+    }
     assert len(pairs) == 4 + 5 * 7
     # every pair with a wall has the torso or a lower leg on the other side
     partners = {}
@@ -96,7 +102,10 @@ def test_walled_system_gets_what_brax_ant_constructor_changes(backend):
     ours = brax_ant_with_walls((), backend)
     np.testing.assert_array_equal(ours.sys.opt.timestep, brax_ant.sys.opt.timestep)
     np.testing.assert_array_equal(ours.sys.actuator.gear, brax_ant.sys.actuator.gear)
-    assert ours.sys.opt.solver == brax_ant.sys.opt.solver and ours.sys.opt.iterations == brax_ant.sys.opt.iterations
+    assert (
+        ours.sys.opt.solver == brax_ant.sys.opt.solver
+        and ours.sys.opt.iterations == brax_ant.sys.opt.iterations
+    )
     assert ours.dt == pytest.approx(float(brax_ant.dt)) and ours.backend == backend
     # with no wall, the very system brax builds, but for the collision bits (and
     # MuJoCo's sizes, which count the bounding-volume nodes of colliding geoms)
@@ -111,7 +120,11 @@ def test_walled_system_gets_what_brax_ant_constructor_changes(backend):
 def test_shapes_and_deterministic_resets(maze, trap):
     for env in (maze, trap):
         reset = jax.jit(env.reset)
-        a, b, c = reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(0)), reset(jax.random.PRNGKey(1))
+        a, b, c = (
+            reset(jax.random.PRNGKey(0)),
+            reset(jax.random.PRNGKey(0)),
+            reset(jax.random.PRNGKey(1)),
+        )
         assert env.observation_size == 29 and env.action_size == 8 and env.descriptor_size == 2
         assert a.obs.shape == (29,) and a.state_descriptor.shape == (2,)
         np.testing.assert_array_equal(a.obs, b.obs)
@@ -123,11 +136,14 @@ def test_shapes_and_deterministic_resets(maze, trap):
         np.testing.assert_allclose(a.obs[0], a.core.q[2], rtol=1e-6)
 
 
-@pytest.mark.parametrize("start, velocity, axis, limit", [
-    ((17.0, 3.0), (10.0, 0.0, 0.0), 0, 20.0),    # inner wall x = 20, from the start side
-    ((15.0, 5.0), (0.0, 10.0, 0.0), 1, 7.5),     # inner wall y = 7.5, from below
-    ((0.0, 0.0), (-10.0, 0.0, 0.0), 0, -5.0),    # border x = -5
-])
+@pytest.mark.parametrize(
+    "start, velocity, axis, limit",
+    [
+        ((17.0, 3.0), (10.0, 0.0, 0.0), 0, 20.0),  # inner wall x = 20, from the start side
+        ((15.0, 5.0), (0.0, 10.0, 0.0), 1, 7.5),  # inner wall y = 7.5, from below
+        ((0.0, 0.0), (-10.0, 0.0, 0.0), 0, -5.0),  # border x = -5
+    ],
+)
 def test_ant_maze_walls_hold(maze_drive, start, velocity, axis, limit):
     pos = maze_drive(start, velocity)[0][:, axis]
     sign = np.sign(limit - start[axis])
@@ -149,13 +165,17 @@ def test_ant_trap_back_wall_holds_and_the_open_side_does_not(trap_drive):
     assert np.all(pos[:, 0] < 12.0 - WALL_RADIUS)
     assert pos[:, 0].max() > 12.0 - WALL_RADIUS - TORSO_RADIUS - 0.1
     assert np.all(np.abs(pos[:, 1]) < 3.0 - WALL_RADIUS)
-    outside = trap_drive((9.0, 6.0), (10.0, 0.0, 0.0))[0]  # beside the trap: same push, nothing in the way
+    outside = trap_drive((9.0, 6.0), (10.0, 0.0, 0.0))[
+        0
+    ]  # beside the trap: same push, nothing in the way
     assert outside[:, 0].max() > 12.0 + 1.0
 
 
 def test_rewards(maze, maze_drive, trap, trap_drive):
     pos, reward, _ = maze_drive((17.0, 3.0), (10.0, 0.0, 0.0))
-    np.testing.assert_allclose(reward, -np.linalg.norm(np.asarray(maze.goal) - pos[:, :2], axis=1), rtol=1e-5)
+    np.testing.assert_allclose(
+        reward, -np.linalg.norm(np.asarray(maze.goal) - pos[:, :2], axis=1), rtol=1e-5
+    )
     pos, reward, _ = trap_drive((9.0, 6.0), (10.0, 0.0, 0.0))
     dt = float(trap.brax_env.dt)
     assert dt == pytest.approx(0.05)
@@ -178,16 +198,22 @@ def test_ant_maze_fitness_is_the_best_reward(maze):
         return jnp.tanh(params * jnp.ones(maze.action_size) + 0.1 * obs[: maze.action_size])
 
     ev = jax.jit(lambda p, k: evaluate_policies(maze, policy, p, k, return_trajectory=True))(
-        jnp.array([0.0, 1.0, -2.0]), jax.random.PRNGKey(0))
+        jnp.array([0.0, 1.0, -2.0]), jax.random.PRNGKey(0)
+    )
     valid = np.asarray(ev.trajectory["valid"])
     rewards = np.where(valid, np.asarray(ev.trajectory["reward"]), -np.inf)
     np.testing.assert_allclose(ev.fitness, rewards.max(axis=1), rtol=1e-6)
     assert np.all(ev.fitness > -36.0) and np.all(ev.fitness < -34.0)  # about 35 from the goal
     sd = np.asarray(ev.trajectory["next_state_descriptor"])
-    np.testing.assert_allclose(np.asarray(ev.trajectory["reward"])[valid],
-                               -np.linalg.norm(np.asarray(maze.goal) - sd, axis=-1)[valid], rtol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(ev.trajectory["reward"])[valid],
+        -np.linalg.norm(np.asarray(maze.goal) - sd, axis=-1)[valid],
+        rtol=1e-5,
+    )
     low, high = maze.descriptor_bounds
-    assert ev.descriptor.shape == (3, 2) and np.all((ev.descriptor >= low) & (ev.descriptor <= high))
+    assert ev.descriptor.shape == (3, 2) and np.all(
+        (ev.descriptor >= low) & (ev.descriptor <= high)
+    )
     last = sd[np.arange(3), np.asarray(ev.length) - 1]
     np.testing.assert_allclose(ev.descriptor, np.clip(last, low, high), rtol=1e-6)
 
@@ -196,7 +222,11 @@ def test_ant_trap_descriptors_are_clipped(trap):
     assert trap.fitness_mode == "return"
     low, high = (np.asarray(b) for b in trap.descriptor_bounds)
     state = trap.reset(jax.random.PRNGKey(2))
-    core = trap.brax_env.pipeline_init(state.core.q.at[:2].set(jnp.array([-3.0, 20.0])), state.core.qd)
+    core = trap.brax_env.pipeline_init(
+        state.core.q.at[:2].set(jnp.array([-3.0, 20.0])), state.core.qd
+    )
     np.testing.assert_allclose(trap._state_descriptor(core), [0.0, 8.0])
-    np.testing.assert_allclose(trap.behaviour_descriptor(jnp.array([40.0, -9.0]), None, None), [30.0, -8.0])
+    np.testing.assert_allclose(
+        trap.behaviour_descriptor(jnp.array([40.0, -9.0]), None, None), [30.0, -8.0]
+    )
     assert np.all(low == [0.0, -8.0]) and np.all(high == [30.0, 8.0])

@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from qdnb import paths, runner
+from qdnb.book import runner
+from qdnb.core import paths
 
 
 @pytest.mark.notebook
@@ -29,7 +30,9 @@ def test_notebook_runs_at_tiny_scale(name):
                 assert r["avg_distance"] >= 0.0 and r["avg_spread"] >= 0.0
                 assert 0.0 < r["coverage"] <= 1.0 and r["env_steps"] > 0
                 assert set(r["reassessed"]) == {"coverage", "max_fitness", "qd_score"}
-                assert r["reassessed"]["coverage"] <= r["coverage"]  # re-insertion can only merge cells
+                assert (
+                    r["reassessed"]["coverage"] <= r["coverage"]
+                )  # re-insertion can only merge cells
                 assert (out.parent / f"repertoire_{env}_{method}.npz").exists()
             bounds = summary["results"]["descriptor_bounds"][env]
             assert all(lo < hi for lo, hi in zip(bounds["low"], bounds["high"]))
@@ -55,17 +58,25 @@ def test_notebook_runs_at_tiny_scale(name):
                 assert 1 <= r["best_epoch"] <= summary["config"]["epochs"]
                 # the claim's QDTs train on every seed, the others on the full seeds only
                 config = summary["config"]
-                assert r["seeds"] == (config["num_seeds"] if source in ("ME", "ME-LS") else config["full_seeds"])
+                assert r["seeds"] == (
+                    config["num_seeds"] if source in ("ME", "ME-LS") else config["full_seeds"]
+                )
             assert set(results["repertoires"][env]) == {"ME", "ME-LS", "PGA-ME", "PGA-ME-LS"}
             gen = results["generalization"][env]
             assert set(gen) == {"50%", "30%", "10%", "tiles", "upper"}
             for pruning in ("tiles", "upper"):
-                assert {"avg_distance", "avg_distance_removed", "avg_distance_kept"} <= set(gen[pruning])
+                assert {"avg_distance", "avg_distance_removed", "avg_distance_kept"} <= set(
+                    gen[pruning]
+                )
             assert set(results["descriptor_bounds"][env]) == {"low", "high"}
             for source in ("ME", "ME-LS", "PGA-ME", "PGA-ME-LS"):
-                assert 0 <= results[env][source]["zones_with_data"] <= summary["config"][env]["zones"]
+                assert (
+                    0 <= results[env][source]["zones_with_data"] <= summary["config"][env]["zones"]
+                )
                 assert 0.0 <= results[env][source]["demonstrator_hit_rate"] <= 1.0
-        assert 0 <= results["claims_held"] <= results["claims_total"] == 4  # two comparisons per environment
+        assert (
+            0 <= results["claims_held"] <= results["claims_total"] == 4
+        )  # two comparisons per environment
     if name == "ch5_flow_lenia":
         results = summary["results"]
         steps = summary["config"]["world"]["steps"]
@@ -76,7 +87,10 @@ def test_notebook_runs_at_tiny_scale(name):
             assert results[f"{predictor}_mse_final"] == per_step[-1]
         assert results["train_loss_final"] > 0.0
         search = results["surprise_search"]
-        assert search["evaluations"] > 0 and search["best_surprise"] >= search["median_surprise"] >= 0.0
+        assert (
+            search["evaluations"] > 0
+            and search["best_surprise"] >= search["median_surprise"] >= 0.0
+        )
         world = results["world"]
         assert set(world) == {"mixing", "p0", "flow_bound", "kernels", "alpha", "border"}
         assert "fixed key" in world["mixing"] and world["border"] == "wall"

@@ -3,64 +3,86 @@ import re
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import nbformat
 import pytest
 
-from qdnb import paths, runner, scale, thesis
-from qdnb.provenance import Run, atomic_write_json, load_arrays, save_arrays, to_jsonable
+from qdnb.book import registry, runner, thesis
+from qdnb.book.provenance import Run
+from qdnb.core import paths
+from qdnb.core.config import config_hash
+from qdnb.core.io import atomic_write_json, load_arrays, save_arrays, to_jsonable
 
 ROOT = paths.ROOT
 
 
 def test_unknown_scale_or_chapter_lists_valid_names():
     with pytest.raises(ValueError, match="valid scales: tiny, small, paper"):
-        scale.config("ch2_primer", "huge")
+        registry.config("ch2_primer", "huge")
     with pytest.raises(ValueError, match="valid chapters: ch2_primer"):
-        scale.config("ch9", "tiny")
+        registry.config("ch9", "tiny")
 
 
 def test_configs_are_frozen_and_hash_stably():
-    cfg = scale.config("ch2_primer", "tiny")
+    cfg = registry.config("ch2_primer", "tiny")
     with pytest.raises(Exception):
         cfg.batch_size = 3
-    assert scale.config_hash(cfg) == scale.config_hash(scale.config("ch2_primer", "tiny"))
-    assert scale.config_hash(cfg) != scale.config_hash(scale.config("ch2_primer", "small"))
+    assert config_hash(cfg) == config_hash(registry.config("ch2_primer", "tiny"))
+    assert config_hash(cfg) != config_hash(registry.config("ch2_primer", "small"))
 
 
 def test_cli_rejects_bad_names_before_running_anything():
-    for args, expected in [(["run", "nope", "--scale", "tiny"], "valid notebooks: ch2_primer"),
-                           (["run", "ch2_primer", "--scale", "huge"], "valid scales: tiny, small, paper"),
-                           (["book", "--scale", "huge"], "valid scales")]:
-        proc = subprocess.run([sys.executable, "-m", "qdnb", *args], cwd=ROOT, capture_output=True, text=True)
+    for args, expected in [
+        (["run", "nope", "--scale", "tiny"], "valid notebooks: ch2_primer"),
+        (["run", "ch2_primer", "--scale", "huge"], "valid scales: tiny, small, paper"),
+        (["book", "--scale", "huge"], "valid scales"),
+    ]:
+        proc = subprocess.run(
+            [sys.executable, "-m", "qdnb", *args], cwd=ROOT, capture_output=True, text=True
+        )
         assert proc.returncode == 2, proc.stderr
         assert expected in proc.stderr
-    out = subprocess.run([sys.executable, "-m", "qdnb", "list"], cwd=ROOT, capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "qdnb", "list"], cwd=ROOT, capture_output=True, text=True
+    )
     assert "ch2_primer" in out.stdout and "tiny small paper" in out.stdout
 
 
 def test_kernels_get_their_scales_xla_flags(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     nb = nbformat.v4.new_notebook()
-    nb.cells = [nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
-                nbformat.v4.new_code_cell("import os\nprint(repr(os.environ.get('XLA_FLAGS')))")]
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    nb.cells = [
+        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
+        nbformat.v4.new_code_cell("import os\nprint(repr(os.environ.get('XLA_FLAGS')))"),
+    ]
+    nb.metadata["kernelspec"] = {
+        "name": "python3",
+        "display_name": "Python 3",
+        "language": "python",
+    }
     src = tmp_path / "flags.ipynb"
     nbformat.write(nb, src)
     printed = {}
     for s in ("tiny", "small"):
-        out = runner.execute(src, tmp_path / s / "flags.ipynb", {"scale": s}, "flags", progress=False)
+        out = runner.execute(
+            src, tmp_path / s / "flags.ipynb", {"scale": s}, "flags", progress=False
+        )
         printed[s] = nbformat.read(out, as_version=4).cells[-1].outputs[0]["text"].strip()
     assert printed == {"tiny": repr(runner.KERNEL_XLA_FLAGS["tiny"]), "small": "None"}
 
 
 def test_a_failing_notebook_names_the_cell_and_leaves_the_partial_copy(tmp_path):
     nb = nbformat.v4.new_notebook()
-    nb.cells = [nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
-                nbformat.v4.new_code_cell("print('before')"),
-                nbformat.v4.new_code_cell("raise RuntimeError('boom ' + scale)")]
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    nb.cells = [
+        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
+        nbformat.v4.new_code_cell("print('before')"),
+        nbformat.v4.new_code_cell("raise RuntimeError('boom ' + scale)"),
+    ]
+    nb.metadata["kernelspec"] = {
+        "name": "python3",
+        "display_name": "Python 3",
+        "language": "python",
+    }
     src, out = tmp_path / "bad.ipynb", tmp_path / "out" / "bad.ipynb"
     nbformat.write(nb, src)
     with pytest.raises(runner.NotebookFailed) as err:
@@ -88,12 +110,22 @@ def test_atomic_json_and_artifacts(tmp_path):
 
 def test_summary_has_the_required_fields(monkeypatch, tmp_path):
     monkeypatch.setattr(paths, "RUNS", tmp_path)
-    cfg = scale.config("ch2_primer", "tiny")
+    cfg = registry.config("ch2_primer", "tiny")
     path = Run("test_nb", "tiny", 3, cfg).finish({"x": 1})
     summary = json.loads(path.read_text())
     assert path == tmp_path / "tiny" / "test_nb" / "summary.json"
-    for key in ["notebook", "scale", "seed", "config", "config_hash", "versions", "device", "git_sha",
-                "wall_time_s", "results"]:
+    for key in [
+        "notebook",
+        "scale",
+        "seed",
+        "config",
+        "config_hash",
+        "versions",
+        "device",
+        "git_sha",
+        "wall_time_s",
+        "results",
+    ]:
         assert key in summary
     assert set(summary["versions"]) >= {"python", "jax", "jaxlib", "brax", "flax", "optax"}
     assert summary["seed"] == 3 and summary["config"]["batch_size"] == cfg.batch_size
@@ -102,13 +134,19 @@ def test_summary_has_the_required_fields(monkeypatch, tmp_path):
 def test_fingerprint_changes_with_scale_and_seed():
     a = runner.fingerprint("ch2_primer", "tiny", 0)
     assert a == runner.fingerprint("ch2_primer", "tiny", 0)
-    assert a != runner.fingerprint("ch2_primer", "small", 0) != runner.fingerprint("ch2_primer", "tiny", 1)
+    assert (
+        a
+        != runner.fingerprint("ch2_primer", "small", 0)
+        != runner.fingerprint("ch2_primer", "tiny", 1)
+    )
 
 
 def test_offline_check_flags_cdn_resources(tmp_path):
-    (tmp_path / "a.html").write_text('<script src="https://cdn.example/x.js"></script>'
-                                     '<a href="https://example.org">fine</a>'
-                                     '<link rel="stylesheet" href="//fonts.example/css">')
+    (tmp_path / "a.html").write_text(
+        '<script src="https://cdn.example/x.js"></script>'
+        '<a href="https://example.org">fine</a>'
+        '<link rel="stylesheet" href="//fonts.example/css">'
+    )
     (tmp_path / "b.css").write_text("@font-face { src: url('https://fonts.example/f.woff2') }")
     found = runner.external_resources(tmp_path)
     assert len(found) == 3
@@ -121,8 +159,14 @@ def test_toc_lists_every_notebook_and_notebooks_are_clean():
     for name in listed:
         nb = nbformat.read(paths.NOTEBOOKS / f"{name}.ipynb", as_version=4)
         params = [c for c in nb.cells if "parameters" in c.metadata.get("tags", [])]
-        assert len(params) == 1 and "scale = \"tiny\"" in params[0].source and "seed = 0" in params[0].source
-        assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), f"{name} has outputs"
+        assert (
+            len(params) == 1
+            and 'scale = "tiny"' in params[0].source
+            and "seed = 0" in params[0].source
+        )
+        assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), (
+            f"{name} has outputs"
+        )
 
 
 def _lock() -> dict[str, str]:
@@ -149,7 +193,17 @@ def test_pyproject_lock_and_environment_agree():
     for name, version in re.findall(r"^\s*-\s*([A-Za-z0-9_\-]+)=+([\w.]+)\s*$", env, re.M):
         if name != "python":
             assert lock.get(name.lower()) == version
-    for name in ["jax", "jaxlib", "brax", "flax", "optax", "papermill", "jupyter-book", "ipykernel", "pytest"]:
+    for name in [
+        "jax",
+        "jaxlib",
+        "brax",
+        "flax",
+        "optax",
+        "papermill",
+        "jupyter-book",
+        "ipykernel",
+        "pytest",
+    ]:
         assert name in lock
 
 
@@ -158,9 +212,16 @@ def test_thesis_tables_are_transcribed():
     assert len(t34) == 36 and set(t34.environment) == {"Point-Maze", "Ant-Maze", "Ant-Trap"}
     assert t34.query("algorithm == 'QD-PG' and environment == 'Ant-Trap'")["mean"].item() == 1540
     t44 = thesis.table("4.4")
-    row = t44.query("method == 'QDT (PGA-ME-LS)' and environment == 'Halfcheetah-Uni' and metric == 'avg_distance'")
+    row = t44.query(
+        "method == 'QDT (PGA-ME-LS)' and environment == 'Halfcheetah-Uni' and metric == "
+        "'avg_distance'"
+    )
     assert abs(row["mean"].item() - 0.0734) < 1e-9  # printed x10^2
-    assert len(thesis.table("3.3")) == 5 and len(thesis.table("4.5")) == 4 and len(thesis.table("5.1")) == 11
+    assert (
+        len(thesis.table("3.3")) == 5
+        and len(thesis.table("4.5")) == 4
+        and len(thesis.table("5.1")) == 11
+    )
     with pytest.raises(ValueError, match="available"):
         thesis.table("9.9")
     with pytest.raises(ValueError, match="lacks"):
@@ -180,4 +241,82 @@ def test_progress_bars_are_tidied_to_their_last_state(tmp_path):
     nbformat.write(nb, path)
     runner.tidy_streams(path)
     outputs = nbformat.read(path, as_version=4).cells[0].outputs
-    assert [(o.name, o.text) for o in outputs] == [("stderr", "GA: 100%| 10/10\n"), ("stdout", "done\n")]
+    assert [(o.name, o.text) for o in outputs] == [
+        ("stderr", "GA: 100%| 10/10\n"),
+        ("stdout", "done\n"),
+    ]
+
+
+def test_pages_with_warnings_or_machine_paths_are_refused(tmp_path):
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [
+        nbformat.v4.new_code_cell("x"),
+        nbformat.v4.new_code_cell("y"),
+        nbformat.v4.new_code_cell("z"),
+    ]
+    nb.cells[0].outputs = [nbformat.v4.new_output("stream", name="stderr", text="42%| 5/12\n")]
+    path = tmp_path / "clean.ipynb"
+    nbformat.write(nb, path)
+    assert runner.output_problems(path) == []
+    nb.cells[1].outputs = [
+        nbformat.v4.new_output(
+            "stream",
+            name="stderr",
+            text="/x/y.py:3: TqdmExperimentalWarning: Using tqdm.autonotebook.\n",
+        )
+    ]
+    nb.cells[2].outputs = [
+        nbformat.v4.new_output("execute_result", data={"text/plain": f"saved in {ROOT}/data/runs"})
+    ]
+    nbformat.write(nb, path)
+    problems = runner.output_problems(path)
+    assert len(problems) == 2
+    assert "cell 1: a warning" in problems[0] and "cell 2: shows the machine path" in problems[1]
+
+
+def test_tidying_hides_papermills_injected_cell(tmp_path):
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [
+        nbformat.v4.new_code_cell("scale = 'small'", metadata={"tags": ["injected-parameters"]})
+    ]
+    path = tmp_path / "nb.ipynb"
+    nbformat.write(nb, path)
+    runner.tidy_streams(path)
+    assert "remove-cell" in nbformat.read(path, as_version=4).cells[0].metadata["tags"]
+
+
+def test_panel_grid_wraps_panels_into_rows():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from qdnb.plotting import panel_grid
+
+    fig, axes = panel_grid(5, ncols=3)
+    assert len(axes) == 5 and len(fig.axes) == 6 and not fig.axes[5].get_visible()
+    assert fig.get_size_inches()[0] < 11  # three panels wide, not five
+    with pytest.raises(ValueError):
+        panel_grid(0)
+
+
+def test_the_notebooks_progress_bars_stream_to_the_terminal(tmp_path, capfd):
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [
+        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
+        nbformat.v4.new_code_cell(
+            "from tqdm import tqdm\nfor _ in tqdm(range(3), desc='inner loop'):\n    pass"
+        ),
+    ]
+    nb.metadata["kernelspec"] = {
+        "name": "python3",
+        "display_name": "Python 3",
+        "language": "python",
+    }
+    src = tmp_path / "bars.ipynb"
+    nbformat.write(nb, src)
+    out = runner.execute(
+        src, tmp_path / "out" / "bars.ipynb", {"scale": "tiny"}, "bars", progress=True
+    )
+    assert "inner loop: 100%" in capfd.readouterr().err  # live, in the terminal
+    runner.tidy_streams(out)
+    kept = nbformat.read(out, as_version=4).cells[-1].outputs
+    assert len(kept) == 1 and kept[0]["text"].count("inner loop") == 1  # once on the page

@@ -6,7 +6,7 @@ import pytest
 from qdnb.envs import make_env
 from qdnb.envs.pointmaze import GOAL, WALLS, in_goal, inside_a_wall, move
 from qdnb.envs.rollout import evaluate_policies, rollout
-from qdnb.rl.networks import MLP, init_policies
+from qdnb.nets.mlp import MLP, init_policies
 
 
 def crosses_a_wall(p, q):
@@ -74,7 +74,9 @@ def test_entering_a_wall_sideways_drops_the_horizontal_part():
     q = move(p, jnp.array([-1.0, 0.0]))
     np.testing.assert_allclose(q, p, atol=1e-6)
     assert not bool(inside_a_wall(q))
-    np.testing.assert_allclose(move(jnp.array([0.55, 0.30]), jnp.array([-1.0, 0.0])), [0.45, 0.30], atol=1e-6)
+    np.testing.assert_allclose(
+        move(jnp.array([0.55, 0.30]), jnp.array([-1.0, 0.0])), [0.45, 0.30], atol=1e-6
+    )
 
 
 def test_the_gap_lets_the_point_through():
@@ -101,7 +103,9 @@ def test_reward_and_goal_termination():
     np.testing.assert_allclose(nxt.reward, -0.03, atol=1e-6)
     far = env.step(state.replace(core=jnp.array([0.5, -0.9])), jnp.zeros(2))
     assert not bool(far.done)
-    np.testing.assert_allclose(far.reward, -np.linalg.norm(np.array([0.5, -0.9]) - np.array(GOAL)), rtol=1e-6)
+    np.testing.assert_allclose(
+        far.reward, -np.linalg.norm(np.array([0.5, -0.9]) - np.array(GOAL)), rtol=1e-6
+    )
 
 
 def test_episode_ends_at_goal_and_is_frozen_after():
@@ -109,9 +113,15 @@ def test_episode_ends_at_goal_and_is_frozen_after():
 
     def to_goal(params, obs):  # a hand-written policy: go left, then up through both gaps
         del params
-        target = jnp.where(obs[1] < -0.45, jnp.array([-0.8, -0.4]),
-                           jnp.where(obs[1] < 0.25, jnp.where(obs[0] < 0.7, jnp.array([0.8, 0.0]), jnp.array([0.8, 0.4])),
-                                     jnp.array(GOAL)))
+        target = jnp.where(
+            obs[1] < -0.45,
+            jnp.array([-0.8, -0.4]),
+            jnp.where(
+                obs[1] < 0.25,
+                jnp.where(obs[0] < 0.7, jnp.array([0.8, 0.0]), jnp.array([0.8, 0.4])),
+                jnp.array(GOAL),
+            ),
+        )
         return jnp.clip((target - obs) * 20.0, -1.0, 1.0)
 
     ev = rollout(env, to_goal, jnp.zeros(()), jax.random.PRNGKey(0), return_trajectory=True)
@@ -122,7 +132,9 @@ def test_episode_ends_at_goal_and_is_frozen_after():
     np.testing.assert_allclose(ev.descriptor, np.asarray(ev.trajectory["next_obs"])[length - 1])
     valid = np.asarray(ev.trajectory["valid"])
     assert valid[:length].all() and not valid[length:].any()
-    np.testing.assert_allclose(ev.fitness, np.asarray(ev.trajectory["reward"])[:length].sum(), rtol=1e-6)
+    np.testing.assert_allclose(
+        ev.fitness, np.asarray(ev.trajectory["reward"])[:length].sum(), rtol=1e-6
+    )
 
 
 def test_batched_evaluation_shapes_and_determinism():
@@ -137,5 +149,7 @@ def test_batched_evaluation_shapes_and_determinism():
 
 
 def test_unknown_environment_is_a_clear_error():
-    with pytest.raises(ValueError, match="valid names: ant_omni, antmaze, anttrap, halfcheetah_uni, pointmaze"):
+    with pytest.raises(
+        ValueError, match="valid names: ant_omni, antmaze, anttrap, halfcheetah_uni, pointmaze"
+    ):
         make_env("pointmaz")

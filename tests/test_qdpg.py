@@ -9,19 +9,28 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import (
+    QDPGConfig,
+    build_algorithms,
+    grid_coverage,
+    reached_goal,
+    run_environment,
+)
 from qdnb.envs import make_env
 from qdnb.envs.rollout import evaluate_policies
+from qdnb.nets.mlp import MLP
 from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.novelty import NoveltyArchive, k_smallest, knn_novelty
-from qdnb.rl.networks import MLP
-from qdnb.rl.qdpg import QDPG, TD3Agent, update_kinds
-from qdnb.rl.qdpg_experiment import build_algorithms, grid_coverage, reached_goal, run_environment
+from qdnb.qd.qdpg import QDPG, update_kinds
+from qdnb.rl.agents import TD3Agent
 from qdnb.rl.td3 import TD3Config, td3_target
-from qdnb.scale import QDPGConfig, config
 
 
 def brute_force_novelty(queries, reference, k):
-    d = np.linalg.norm(np.asarray(queries, np.float64)[:, None] - np.asarray(reference, np.float64)[None], axis=-1)
+    d = np.linalg.norm(
+        np.asarray(queries, np.float64)[:, None] - np.asarray(reference, np.float64)[None], axis=-1
+    )
     return np.sort(d, axis=1)[:, :k].mean(axis=1)
 
 
@@ -35,7 +44,9 @@ def test_archive_acceptance_and_fifo_replacement():
     np.testing.assert_allclose(archive.data, [[5.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
     assert int(archive.num_added) == 4 and int(archive.size) == 3
     # Items flagged invalid are skipped even when novel.
-    again = archive.add(jnp.array([[9.0, 9.0], [20.0, 0.0]]), 0.5, 1, valid=jnp.array([False, True]))
+    again = archive.add(
+        jnp.array([[9.0, 9.0], [20.0, 0.0]]), 0.5, 1, valid=jnp.array([False, True])
+    )
     np.testing.assert_allclose(again.data, [[5.0, 0.0], [20.0, 0.0], [3.0, 0.0]])
 
 
@@ -44,14 +55,28 @@ def test_novelty_matches_brute_force_on_large_archives():
     key = jax.random.PRNGKey(0)
     reference = jnp.round(jax.random.uniform(key, (10_000, 2)) * 50) / 50  # many exact duplicates
     queries = jax.random.uniform(jax.random.PRNGKey(1), (300, 2))
-    np.testing.assert_allclose(knn_novelty(queries, reference, 10), brute_force_novelty(queries, reference, 10),
-                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        knn_novelty(queries, reference, 10),
+        brute_force_novelty(queries, reference, 10),
+        rtol=1e-5,
+        atol=1e-7,
+    )
     values = jax.random.normal(jax.random.PRNGKey(2), (7, 3_333))  # not a multiple of the block
-    np.testing.assert_allclose(k_smallest(values, 10), np.sort(np.asarray(values), axis=1)[:, :10], rtol=1e-6)
-    small_rows = jax.random.normal(jax.random.PRNGKey(3), (7, 2_000))  # the small archive's size: blockwise too
-    np.testing.assert_allclose(k_smallest(small_rows, 10), np.sort(np.asarray(small_rows), axis=1)[:, :10], rtol=1e-6)
-    archive = NoveltyArchive.create(10_000, 2).replace(data=reference, num_added=jnp.asarray(10_000, jnp.int32))
-    np.testing.assert_allclose(archive.novelty(queries, 10), brute_force_novelty(queries, reference, 10), rtol=1e-5)
+    np.testing.assert_allclose(
+        k_smallest(values, 10), np.sort(np.asarray(values), axis=1)[:, :10], rtol=1e-6
+    )
+    small_rows = jax.random.normal(
+        jax.random.PRNGKey(3), (7, 2_000)
+    )  # the small archive's size: blockwise too
+    np.testing.assert_allclose(
+        k_smallest(small_rows, 10), np.sort(np.asarray(small_rows), axis=1)[:, :10], rtol=1e-6
+    )
+    archive = NoveltyArchive.create(10_000, 2).replace(
+        data=reference, num_added=jnp.asarray(10_000, jnp.int32)
+    )
+    np.testing.assert_allclose(
+        archive.novelty(queries, 10), brute_force_novelty(queries, reference, 10), rtol=1e-5
+    )
 
 
 def test_update_kinds_give_each_actor_one_kind():
@@ -71,18 +96,33 @@ def maze():
 
 def small_qdpg(env, update="alternate", **kw):
     kw = {"archive_threshold": 1e-4, **kw}
-    return QDPG(env=env, network=MLP((8, env.action_size), activation="relu"), batch_size=4, iso_sigma=0.0,
-                line_sigma=0.0, centroids=grid_centroids((5, 5), (-1, -1), (1, 1)), update=update,
-                td3_config=TD3Config(batch_size=16, critic_hidden=(8,), actor_lr=1e-2), num_critic_steps=4,
-                num_pg_steps=3, buffer_size=1000, archive_size=64, **kw)
+    return QDPG(
+        env=env,
+        network=MLP((8, env.action_size), activation="relu"),
+        batch_size=4,
+        iso_sigma=0.0,
+        line_sigma=0.0,
+        centroids=grid_centroids((5, 5), (-1, -1), (1, 1)),
+        update=update,
+        td3_config=TD3Config(batch_size=16, critic_hidden=(8,), actor_lr=1e-2),
+        num_critic_steps=4,
+        num_pg_steps=3,
+        buffer_size=1000,
+        archive_size=64,
+        **kw,
+    )
 
 
 def test_each_actor_is_updated_against_the_critic_of_its_kind(maze):
     algo = small_qdpg(maze)
     state, _ = algo.init(jax.random.PRNGKey(0))
-    state = state.replace(d_critic=algo.td3.init(jax.random.PRNGKey(9)))  # two clearly different critics
+    state = state.replace(
+        d_critic=algo.td3.init(jax.random.PRNGKey(9))
+    )  # two clearly different critics
     parents = jax.tree.map(lambda x: x[:4], state.repertoire.genotypes)
-    parents = jax.tree.map(lambda x: jnp.broadcast_to(x[:1], x.shape), parents)  # four copies of one actor
+    parents = jax.tree.map(
+        lambda x: jnp.broadcast_to(x[:1], x.shape), parents
+    )  # four copies of one actor
     diversity = jnp.array([True, False, False, True])
     key = jax.random.PRNGKey(3)
     out = algo.mutate(state, parents, diversity, key)
@@ -91,69 +131,111 @@ def test_each_actor_is_updated_against_the_critic_of_its_kind(maze):
     for i in range(4):
         critic = (state.d_critic if diversity[i] else state.q_critic).critic
         other = (state.q_critic if diversity[i] else state.d_critic).critic
-        expected = algo.td3.policy_gradient_steps(one(parents, i), critic, state.buffer, keys[i], algo.num_pg_steps)
-        wrong = algo.td3.policy_gradient_steps(one(parents, i), other, state.buffer, keys[i], algo.num_pg_steps)
-        for a, b, c in zip(jax.tree.leaves(one(out, i)), jax.tree.leaves(expected), jax.tree.leaves(wrong)):
+        expected = algo.td3.policy_gradient_steps(
+            one(parents, i), critic, state.buffer, keys[i], algo.num_pg_steps
+        )
+        wrong = algo.td3.policy_gradient_steps(
+            one(parents, i), other, state.buffer, keys[i], algo.num_pg_steps
+        )
+        for a, b, c in zip(
+            jax.tree.leaves(one(out, i)), jax.tree.leaves(expected), jax.tree.leaves(wrong)
+        ):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-        assert any(not np.allclose(a, c) for a, c in zip(jax.tree.leaves(one(out, i)), jax.tree.leaves(wrong)))
+        assert any(
+            not np.allclose(a, c)
+            for a, c in zip(jax.tree.leaves(one(out, i)), jax.tree.leaves(wrong))
+        )
 
 
 def test_critic_targets_on_a_hand_checked_batch(maze):
     algo = small_qdpg(maze, update="alternate", archive_k=2)
     archive = NoveltyArchive.create(4, 2).replace(
-        data=jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]), num_added=jnp.asarray(4, jnp.int32))
-    batch = {"obs": jnp.zeros((2, 2)), "action": jnp.zeros((2, 2)), "next_obs": jnp.array([[0.1, 0.2], [0.3, -0.4]]),
-             "reward": jnp.array([-1.0, -2.0]), "terminal": jnp.array([0.0, 1.0]),
-             "state_descriptor": jnp.array([[0.0, 1.0], [1.0, 1.0]])}
+        data=jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]),
+        num_added=jnp.asarray(4, jnp.int32),
+    )
+    batch = {
+        "obs": jnp.zeros((2, 2)),
+        "action": jnp.zeros((2, 2)),
+        "next_obs": jnp.array([[0.1, 0.2], [0.3, -0.4]]),
+        "reward": jnp.array([-1.0, -2.0]),
+        "terminal": jnp.array([0.0, 1.0]),
+        "state_descriptor": jnp.array([[0.0, 1.0], [1.0, 1.0]]),
+    }
     # Novelty with K = 2: (0,1) is 1 from (0,0), 1 from (0,2), sqrt2 from (1,0) -> 1.0;
     # (1,1) is 1 from (1,0), sqrt2 from (0,0) and from (0,2) -> (1 + sqrt2) / 2.
     novelty = np.array([1.0, (1.0 + np.sqrt(2.0)) / 2])
     np.testing.assert_allclose(algo.critic_rewards(archive, batch, "diversity"), novelty, rtol=1e-6)
     np.testing.assert_allclose(algo.critic_rewards(archive, batch, "quality"), [-1.0, -2.0])
-    np.testing.assert_allclose(algo.critic_rewards(archive, batch, "sum"), novelty + [-1.0, -2.0], rtol=1e-6)
+    np.testing.assert_allclose(
+        algo.critic_rewards(archive, batch, "sum"), novelty + [-1.0, -2.0], rtol=1e-6
+    )
     td3 = algo.td3
     state = td3.init(jax.random.PRNGKey(0))
     key = jax.random.PRNGKey(1)
     for kind, r in (("quality", np.array([-1.0, -2.0])), ("diversity", novelty)):
-        y = td3.target(state.critic_target, state.actor_target,
-                       {**batch, "reward": algo.critic_rewards(archive, batch, kind)}, key)
+        y = td3.target(
+            state.critic_target,
+            state.actor_target,
+            {**batch, "reward": algo.critic_rewards(archive, batch, kind)},
+            key,
+        )
         # The same smoothed target action, by hand: y = r + gamma * (1 - terminal) * min(Q1', Q2').
         a = td3.actor.apply(state.actor_target, batch["next_obs"])
         noise = jnp.clip(0.2 * jax.random.normal(key, a.shape), -0.5, 0.5)
-        q1, q2 = td3.critic.apply(state.critic_target, batch["next_obs"], jnp.clip(a + noise, -1, 1))
+        q1, q2 = td3.critic.apply(
+            state.critic_target, batch["next_obs"], jnp.clip(a + noise, -1, 1)
+        )
         hand = r + 0.99 * np.array([1.0, 0.0]) * np.minimum(q1, q2)
         np.testing.assert_allclose(y, hand, rtol=1e-5)
-        np.testing.assert_allclose(y, td3_target(jnp.asarray(r), batch["terminal"], q1, q2, 0.99), rtol=1e-5)
+        np.testing.assert_allclose(
+            y, td3_target(jnp.asarray(r), batch["terminal"], q1, q2, 0.99), rtol=1e-5
+        )
 
 
 def test_qdpg_iterates_and_ablations_train_only_their_critics(maze):
-    for update, trains_q, trains_d in (("alternate", True, True), ("quality", True, False),
-                                      ("diversity", False, True), ("sum", True, False)):
+    for update, trains_q, trains_d in (
+        ("alternate", True, True),
+        ("quality", True, False),
+        ("diversity", False, True),
+        ("sum", True, False),
+    ):
         algo = small_qdpg(maze, update)
         state, ev0 = algo.init(jax.random.PRNGKey(0))
         new, ev = jax.jit(algo.step)(state)
-        changed = lambda a, b: any(not np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+        changed = lambda a, b: any(
+            not np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b))
+        )
         assert changed(state.q_critic.critic, new.q_critic.critic) == trains_q, update
         assert changed(state.d_critic.critic, new.d_critic.critic) == trains_d, update
         # Every valid transition of both evaluations is in the buffer, with its state descriptor.
         n_valid = int(ev0.length.sum() + ev.length.sum())
         assert int(new.buffer.size) == n_valid
         assert "state_descriptor" in new.buffer.data
-        np.testing.assert_allclose(new.buffer.data["state_descriptor"][: int(ev0.length[0])],
-                                   ev0.trajectory["state_descriptor"][0, : int(ev0.length[0])])
+        np.testing.assert_allclose(
+            new.buffer.data["state_descriptor"][: int(ev0.length[0])],
+            ev0.trajectory["state_descriptor"][0, : int(ev0.length[0])],
+        )
         assert 0 < int(new.archive.size) <= n_valid
         assert float(algo.metrics(new)["coverage"]) > 0
 
 
 def test_td3_agent_explores_around_its_greedy_episode(maze):
-    agent = TD3Agent(env=maze, network=MLP((8, 2), activation="relu"),
-                     td3_config=TD3Config(batch_size=16, critic_hidden=(8,)), num_episodes=3, num_critic_steps=4,
-                     exploration_noise=0.3, buffer_size=1000)
+    agent = TD3Agent(
+        env=maze,
+        network=MLP((8, 2), activation="relu"),
+        td3_config=TD3Config(batch_size=16, critic_hidden=(8,)),
+        num_episodes=3,
+        num_critic_steps=4,
+        exploration_noise=0.3,
+        buffer_size=1000,
+    )
     state, ev = agent.init(jax.random.PRNGKey(0))
     actions = np.asarray(ev.trajectory["action"])
     greedy = jax.vmap(lambda o: agent.network.apply(state.td3.actor, o))(ev.trajectory["obs"][0])
     np.testing.assert_allclose(actions[0], greedy, rtol=1e-5, atol=1e-6)  # episode 0: no noise
-    others = jax.vmap(jax.vmap(lambda o: agent.network.apply(state.td3.actor, o)))(ev.trajectory["obs"][1:])
+    others = jax.vmap(jax.vmap(lambda o: agent.network.apply(state.td3.actor, o)))(
+        ev.trajectory["obs"][1:]
+    )
     assert not np.allclose(actions[1:], others)  # the others explore
     assert np.all(np.abs(actions) <= 1.0)
     assert float(agent.metrics(state)["max_fitness"]) == float(ev.fitness[0])
@@ -163,7 +245,9 @@ def test_td3_agent_explores_around_its_greedy_episode(maze):
 
 def test_exploration_noise_zero_is_the_deterministic_rollout(maze):
     net = MLP((8, 2))
-    params = jax.vmap(lambda k: net.init(k, jnp.zeros(2)))(jax.random.split(jax.random.PRNGKey(0), 3))
+    params = jax.vmap(lambda k: net.init(k, jnp.zeros(2)))(
+        jax.random.split(jax.random.PRNGKey(0), 3)
+    )
     a = evaluate_policies(maze, net.apply, params, jax.random.PRNGKey(1))
     b = evaluate_policies(maze, net.apply, params, jax.random.PRNGKey(1), exploration_noise=0.0)
     np.testing.assert_array_equal(a.fitness, b.fitness)
@@ -175,7 +259,9 @@ def test_configs_and_helpers():
         assert all(cfg.task(e).num_iterations >= 1 for e in ("pointmaze", "antmaze", "anttrap"))
     paper = config("ch3_qdpg", "paper")
     assert paper.pointmaze.num_steps == 1_000_000 and paper.antmaze.num_steps == 100_000_000
-    assert paper.pointmaze.num_critic_steps == 4 * 200 and paper.antmaze.num_pg_steps == 300  # ratio x length
+    assert (
+        paper.pointmaze.num_critic_steps == 4 * 200 and paper.antmaze.num_pg_steps == 300
+    )  # ratio x length
     assert paper.pointmaze.optimizer == "sgd" and paper.antmaze.bins == 7
     with pytest.raises(ValueError, match="less than one iteration"):
         dataclasses.replace(paper, pointmaze=dataclasses.replace(paper.pointmaze, num_steps=100))
@@ -189,9 +275,13 @@ def test_configs_and_helpers():
         TD3Config(optimizer="rmsprop")
     assert isinstance(paper, QDPGConfig)
     env = make_env("pointmaze")
-    d = np.array([[[[-0.5, 0.8], [0.9, 0.9]]], [[[0.0, 0.0], [0.1, 0.1]]]])  # seeds x iterations x episodes x 2
+    d = np.array(
+        [[[[-0.5, 0.8], [0.9, 0.9]]], [[[0.0, 0.0], [0.1, 0.1]]]]
+    )  # seeds x iterations x episodes x 2
     np.testing.assert_array_equal(reached_goal(d), [True, False])
-    np.testing.assert_allclose(grid_coverage(d, env, 2), [2 / 4, 1 / 4])  # (0,0) and (0.1,0.1) share a cell
+    np.testing.assert_allclose(
+        grid_coverage(d, env, 2), [2 / 4, 1 / 4]
+    )  # (0,0) and (0.1,0.1) share a cell
     algos = build_algorithms(config("ch3_qdpg", "tiny"), "pointmaze", env)
     assert set(algos) == {"QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME"}
 
@@ -205,8 +295,13 @@ def test_qdpg_on_point_maze_runs_on_its_own_seed_count():
     assert cfg.pointmaze.num_iterations == 2 and cfg.pointmaze.num_steps == 2 * 4 * 200
     assert cfg.seeds("pointmaze", "QD-PG") == 2 and cfg.seeds("pointmaze", "TD3") == 1
     assert cfg.seeds("antmaze", "QD-PG") == 1 and tiny.seeds("pointmaze", "QD-PG") == 1
-    assert cfg.with_seeds(3).seeds("pointmaze", "QD-PG") == 3 and cfg.with_seeds(3).seeds("pointmaze", "TD3") == 3
-    out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=False, methods=("QD-PG", "TD3"))
+    assert (
+        cfg.with_seeds(3).seeds("pointmaze", "QD-PG") == 3
+        and cfg.with_seeds(3).seeds("pointmaze", "TD3") == 3
+    )
+    out = run_environment(
+        cfg, "pointmaze", jax.random.PRNGKey(0), progress=False, methods=("QD-PG", "TD3")
+    )
     assert out["methods"]["QD-PG"]["final_performance"].shape == (2,)
     assert out["methods"]["TD3"]["final_performance"].shape == (1,)
     assert out["methods"]["QD-PG"]["history"]["descriptors"].shape[:2] == (2, 2)
@@ -226,17 +321,29 @@ def test_the_target_critic_moves_on_every_critic_step_and_the_target_actor_on_ac
     batch = state.buffer.sample(jax.random.PRNGKey(1), 16)
     s1, _ = td3.critic_step(s0, batch, jax.random.PRNGKey(2))
     tau = td3.config.tau
-    for t0, t1, c1 in zip(*(jax.tree.leaves(x) for x in (s0.critic_target, s1.critic_target, s1.critic))):
+    for t0, t1, c1 in zip(
+        *(jax.tree.leaves(x) for x in (s0.critic_target, s1.critic_target, s1.critic))
+    ):
         np.testing.assert_allclose(t1, (1 - tau) * t0 + tau * c1, rtol=1e-5, atol=1e-7)
-    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(s0.critic_target), jax.tree.leaves(s1.critic_target)))
+    assert any(
+        not np.array_equal(a, b)
+        for a, b in zip(jax.tree.leaves(s0.critic_target), jax.tree.leaves(s1.critic_target))
+    )
     # train_critic with 2 steps: two critic steps, then one actor step and one target-actor move.
     s2, _ = td3.train_critic(s0, state.buffer, jax.random.PRNGKey(3), 2)
     assert int(s2.steps) == 2
-    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(s0.actor), jax.tree.leaves(s2.actor)))
-    for a0, ta, a2 in zip(*(jax.tree.leaves(x) for x in (s0.actor_target, s2.actor_target, s2.actor))):
+    assert any(
+        not np.array_equal(a, b)
+        for a, b in zip(jax.tree.leaves(s0.actor), jax.tree.leaves(s2.actor))
+    )
+    for a0, ta, a2 in zip(
+        *(jax.tree.leaves(x) for x in (s0.actor_target, s2.actor_target, s2.actor))
+    ):
         np.testing.assert_allclose(ta, (1 - tau) * a0 + tau * a2, rtol=1e-5, atol=1e-7)
     # With a target update interval of 2, the first step leaves the target critic alone.
-    lazy = dataclasses.replace(td3, config=dataclasses.replace(td3.config, target_update_interval=2))
+    lazy = dataclasses.replace(
+        td3, config=dataclasses.replace(td3.config, target_update_interval=2)
+    )
     s1_lazy, _ = lazy.critic_step(s0, batch, jax.random.PRNGKey(2))
     for a, b in zip(jax.tree.leaves(s0.critic_target), jax.tree.leaves(s1_lazy.critic_target)):
         np.testing.assert_array_equal(a, b)
@@ -249,7 +356,9 @@ def test_a_transition_carries_the_descriptor_of_the_state_it_starts_from(maze):
     psi is the position, so the stored descriptor equals obs, not next_obs, and
     the archive receives the starting position of the episode."""
     net = MLP((8, 2))
-    params = jax.vmap(lambda k: net.init(k, jnp.zeros(2)))(jax.random.split(jax.random.PRNGKey(0), 2))
+    params = jax.vmap(lambda k: net.init(k, jnp.zeros(2)))(
+        jax.random.split(jax.random.PRNGKey(0), 2)
+    )
     ev = evaluate_policies(maze, net.apply, params, jax.random.PRNGKey(1), return_trajectory=True)
     t = ev.trajectory
     np.testing.assert_array_equal(t["state_descriptor"], t["obs"])
@@ -260,20 +369,29 @@ def test_a_transition_carries_the_descriptor_of_the_state_it_starts_from(maze):
     np.testing.assert_allclose(state.archive.data[0], first)
     np.testing.assert_allclose(state.buffer.data["state_descriptor"][0], first)
     # A hand-made transition: the diversity reward scores psi(s_t) = (0, 1), not s_{t+1}.
-    archive = NoveltyArchive.create(2, 2).replace(data=jnp.array([[0.0, 0.0], [0.0, 3.0]]),
-                                                  num_added=jnp.asarray(2, jnp.int32))
-    batch = {"obs": jnp.array([[0.0, 1.0]]), "next_obs": jnp.array([[0.0, 1.1]]),
-             "state_descriptor": jnp.array([[0.0, 1.0]]), "reward": jnp.zeros(1)}
-    np.testing.assert_allclose(dataclasses.replace(algo, archive_k=1).critic_rewards(archive, batch, "diversity"),
-                               [1.0], rtol=1e-6)
+    archive = NoveltyArchive.create(2, 2).replace(
+        data=jnp.array([[0.0, 0.0], [0.0, 3.0]]), num_added=jnp.asarray(2, jnp.int32)
+    )
+    batch = {
+        "obs": jnp.array([[0.0, 1.0]]),
+        "next_obs": jnp.array([[0.0, 1.1]]),
+        "state_descriptor": jnp.array([[0.0, 1.0]]),
+        "reward": jnp.zeros(1),
+    }
+    np.testing.assert_allclose(
+        dataclasses.replace(algo, archive_k=1).critic_rewards(archive, batch, "diversity"),
+        [1.0],
+        rtol=1e-6,
+    )
 
 
 def test_novelty_of_every_batch_of_an_iteration_in_one_pass_is_exact():
     """The critic scores all its batches at once (leading axes, chunked): the
     same values as brute force, batch by batch."""
     reference = jax.random.uniform(jax.random.PRNGKey(0), (500, 2))
-    archive = NoveltyArchive.create(600, 2).replace(data=jnp.pad(reference, ((0, 100), (0, 0))),
-                                                    num_added=jnp.asarray(500, jnp.int32))
+    archive = NoveltyArchive.create(600, 2).replace(
+        data=jnp.pad(reference, ((0, 100), (0, 0))), num_added=jnp.asarray(500, jnp.int32)
+    )
     queries = jax.random.uniform(jax.random.PRNGKey(1), (7, 33, 2))
     got = archive.novelty(queries, 5, chunk=50)  # 231 queries: 5 chunks, the last one padded
     assert got.shape == (7, 33)
@@ -293,10 +411,16 @@ def test_mutations_use_their_own_learning_rate(maze):
     fast = dataclasses.replace(td3, config=dataclasses.replace(td3.config, mutation_lr=1.0))
     state, _ = small_qdpg(maze).init(jax.random.PRNGKey(0))
     actor = td3.init(jax.random.PRNGKey(4)).actor
-    slow_out = td3.policy_gradient_steps(actor, state.q_critic.critic, state.buffer, jax.random.PRNGKey(5), 1)
-    fast_out = fast.policy_gradient_steps(actor, state.q_critic.critic, state.buffer, jax.random.PRNGKey(5), 1)
+    slow_out = td3.policy_gradient_steps(
+        actor, state.q_critic.critic, state.buffer, jax.random.PRNGKey(5), 1
+    )
+    fast_out = fast.policy_gradient_steps(
+        actor, state.q_critic.critic, state.buffer, jax.random.PRNGKey(5), 1
+    )
     # Adam's first step moves each weight by about the learning rate
-    step = lambda out: max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(actor)))
+    step = lambda out: max(
+        float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(actor))
+    )
     assert step(fast_out) > 50 * step(slow_out)
 
 
@@ -330,9 +454,17 @@ def test_the_sweep_script_runs_a_tiny_grid_resumes_and_selects(tmp_path):
         assert all(s is None or 0 < s <= 4_000 for s in entry["steps_to_exit"])
         assert all(0 < e <= 4_000 for e in entry["env_steps"])
     assert again["runs"] == first["runs"] and first["selected"] == "base"
-    fake = {"a": {"QD-PG": {"final_performance": [-50.0], "seconds": 100.0}, "D-PG": {"final_performance": [-50.0]}},
-            "b": {"QD-PG": {"final_performance": [-20.0], "seconds": 900.0}, "D-PG": {"final_performance": [-20.0]}},
-            "c": {"QD-PG": {"final_performance": [-10.0], "seconds": 1.0}}}  # D-PG missing: not eligible
+    fake = {
+        "a": {
+            "QD-PG": {"final_performance": [-50.0], "seconds": 100.0},
+            "D-PG": {"final_performance": [-50.0]},
+        },
+        "b": {
+            "QD-PG": {"final_performance": [-20.0], "seconds": 900.0},
+            "D-PG": {"final_performance": [-20.0]},
+        },
+        "c": {"QD-PG": {"final_performance": [-10.0], "seconds": 1.0}},
+    }  # D-PG missing: not eligible
     assert sweep.select(fake, None) == "b" and sweep.select(fake, 500.0) == "a"
 
 
@@ -344,11 +476,20 @@ def test_maze_regions_split_the_maze_at_the_walls():
 
     from qdnb.envs.pointmaze import maze_regions
 
-    points = np.array([[0.0, -0.9], [0.0, 0.0], [0.8, 0.0], [0.0, 0.20], [0.0, 0.21], [-0.5, 0.8]], np.float32)
+    points = np.array(
+        [[0.0, -0.9], [0.0, 0.0], [0.8, 0.0], [0.0, 0.20], [0.0, 0.21], [-0.5, 0.8]], np.float32
+    )
     masks = maze_regions(points)
     assert masks["below the lower wall"].tolist() == [True, False, False, False, False, False]
     assert masks["between the walls"].tolist() == [False, True, True, True, False, False]
-    assert masks["right-hand passage (x > 0.5, between the walls)"].tolist() == [False, False, True, False, False, False]
+    assert masks["right-hand passage (x > 0.5, between the walls)"].tolist() == [
+        False,
+        False,
+        True,
+        False,
+        False,
+        False,
+    ]
     assert masks["above the upper wall"].tolist() == [False, False, False, False, True, True]
     assert maze_regions(points.reshape(2, 3, 2))["between the walls"].shape == (2, 3)
 

@@ -10,35 +10,58 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from qdnb.book.registry import config
+from qdnb.chapters.ch4_qdt import QDTConfig, QDTTask
+from qdnb.core.evaluation import Evaluation
 from qdnb.envs import make_env
-from qdnb.envs.rollout import Evaluation
+from qdnb.models.qdt.data import (
+    Trajectories,
+    density,
+    prune,
+    removed_region,
+    removed_tiles,
+    removed_upper,
+    select_policies,
+)
+from qdnb.models.qdt.evaluate import play
+from qdnb.models.qdt.model import QDT, init_params
+from qdnb.models.qdt.train import fit, loss_fn, make_train_step
+from qdnb.nets.transformer import make_optimizer
 from qdnb.qd.repertoire import Repertoire
-from qdnb.qdt.data import (Trajectories, density, prune, removed_region, removed_tiles, removed_upper,
-                           select_policies)
-from qdnb.qdt.evaluate import play
-from qdnb.qdt.model import QDT, init_params
-from qdnb.qdt.train import fit, loss_fn, make_optimizer, make_train_step
-from qdnb.scale import QDTConfig, QDTTask, config
 
 B, T, BD, OBS, ACT = 2, 6, 2, 5, 3
 
 
 def small_qdt(**kwargs):
-    return QDT(**{"action_size": ACT, "max_steps": T, "embed_dim": 32, "num_layers": 2, "num_heads": 4,
-                  "dropout": 0.0, **kwargs})
+    return QDT(
+        **{
+            "action_size": ACT,
+            "max_steps": T,
+            "embed_dim": 32,
+            "num_layers": 2,
+            "num_heads": 4,
+            "dropout": 0.0,
+            **kwargs,
+        }
+    )
 
 
 def inputs(key, batch=B, steps=T):
     k1, k2, k3 = jax.random.split(key, 3)
-    return (jax.random.normal(k1, (batch, BD)), jax.random.normal(k2, (batch, steps, OBS)),
-            jax.random.uniform(k3, (batch, steps, ACT), minval=-1.0, maxval=1.0))
+    return (
+        jax.random.normal(k1, (batch, BD)),
+        jax.random.normal(k2, (batch, steps, OBS)),
+        jax.random.uniform(k3, (batch, steps, ACT), minval=-1.0, maxval=1.0),
+    )
 
 
 def perturbed(params, key, scale=0.1):
     """The parameters plus noise, so that biases and LayerNorm scales are not 0 and 1."""
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(key, len(leaves))
-    return jax.tree.unflatten(tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+    return jax.tree.unflatten(
+        tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -63,10 +86,13 @@ def layer_norm(x, scale, bias):
 
 
 def dense(p, x):
-    return np.asarray(x, np.float64) @ np.asarray(p["kernel"], np.float64) + np.asarray(p["bias"], np.float64)
+    return np.asarray(x, np.float64) @ np.asarray(p["kernel"], np.float64) + np.asarray(
+        p["bias"], np.float64
+    )
 
 
 # ----- the model -----
+
 
 def test_predictions_are_causal_in_observations_and_actions(forward):
     bd, obs, actions = inputs(jax.random.PRNGKey(2))
@@ -82,7 +108,7 @@ def test_predictions_are_causal_in_observations_and_actions(forward):
         moved = forward(bd, obs, actions.at[:, k].add(noise))
         np.testing.assert_allclose(moved[:, : k + 1], pred[:, : k + 1], atol=1e-6)
         if k < T - 1:
-            assert np.abs(moved[:, k + 1:] - pred[:, k + 1:]).max() > 1e-3
+            assert np.abs(moved[:, k + 1 :] - pred[:, k + 1 :]).max() > 1e-3
     # the BD token comes first: every prediction, A_0 included, depends on it
     moved = forward(bd + 1.0, obs, actions)
     assert np.all(np.abs(moved[:, 0] - pred[:, 0]).max(axis=-1) > 1e-3)
@@ -109,15 +135,23 @@ def test_the_three_tokens_of_a_timestep_share_its_embedding(qdt):
     for name in ("embed_bd", "embed_obs", "embed_action"):
         p[name] = jax.tree.map(jnp.zeros_like, p[name])
     bd, obs, actions = inputs(jax.random.PRNGKey(5))
-    tokens = np.asarray(model.apply({"params": p}, bd, obs, actions, jnp.arange(T), method=QDT.tokens))
-    expected = layer_norm(p["embed_timestep"]["embedding"][:T], p["embed_ln"]["scale"], p["embed_ln"]["bias"])
+    tokens = np.asarray(
+        model.apply({"params": p}, bd, obs, actions, jnp.arange(T), method=QDT.tokens)
+    )
+    expected = layer_norm(
+        p["embed_timestep"]["embedding"][:T], p["embed_ln"]["scale"], p["embed_ln"]["bias"]
+    )
     for t in range(T):
         for i in range(3):
-            np.testing.assert_allclose(tokens[:, 3 * t + i], np.broadcast_to(expected[t], (B, 32)), atol=1e-5)
+            np.testing.assert_allclose(
+                tokens[:, 3 * t + i], np.broadcast_to(expected[t], (B, 32)), atol=1e-5
+            )
     # and the rows differ from one timestep to the next
     assert min(np.abs(expected[t] - expected[u]).max() for t in range(T) for u in range(t)) > 1e-2
     # timesteps given per trajectory pick their own rows
-    shifted = np.asarray(model.apply({"params": p}, bd, obs, actions, jnp.arange(T)[::-1], method=QDT.tokens))
+    shifted = np.asarray(
+        model.apply({"params": p}, bd, obs, actions, jnp.arange(T)[::-1], method=QDT.tokens)
+    )
     np.testing.assert_allclose(shifted[:, 0], np.broadcast_to(expected[T - 1], (B, 32)), atol=1e-5)
 
 
@@ -129,7 +163,9 @@ def test_prefill_and_decode_steps_reproduce_the_full_forward_pass(qdt, forward):
     assert len(cache) == 2 and cache[0][0].shape == (B, 3 * T, 4, 8)
     action, cache = model.apply(params, bd, obs[:, 0], cache, method=QDT.prefill)
     np.testing.assert_allclose(action, full[:, 0], atol=1e-5)
-    decode = jax.jit(lambda *args: model.apply(params, *args, method=QDT.decode_step))  # t traced, as in play
+    decode = jax.jit(
+        lambda *args: model.apply(params, *args, method=QDT.decode_step)
+    )  # t traced, as in play
     for t in range(1, T):
         action, cache = decode(bd, actions[:, t - 1], obs[:, t], jnp.int32(t), cache)
         np.testing.assert_allclose(action, full[:, t], atol=1e-5)
@@ -140,11 +176,18 @@ def test_prefill_and_decode_steps_reproduce_the_full_forward_pass(qdt, forward):
 
 # ----- training -----
 
+
 def trajectories(key, n=3, steps=T, valid_steps=(T, 4, 2)):
     bd, obs, actions = inputs(key, n, steps)
     valid = jnp.arange(steps)[None, :] < jnp.asarray(valid_steps)[:, None]
-    return Trajectories(bd=bd, obs=obs, actions=actions, valid=valid, fitness=jnp.arange(n, dtype=jnp.float32),
-                        policy=jnp.arange(n))
+    return Trajectories(
+        bd=bd,
+        obs=obs,
+        actions=actions,
+        valid=valid,
+        fitness=jnp.arange(n, dtype=jnp.float32),
+        policy=jnp.arange(n),
+    )
 
 
 def test_loss_is_the_mean_squared_error_over_valid_steps_only(qdt):
@@ -161,7 +204,9 @@ def test_loss_is_the_mean_squared_error_over_valid_steps_only(qdt):
     np.testing.assert_allclose(loss, expected, rtol=1e-5)
     # the invalid steps end their trajectories: whatever they hold, the loss is the same
     later = ~valid[:, :, None]
-    junk = batch.replace(actions=jnp.where(later, 0.9, batch.actions), obs=jnp.where(later, 7.0, batch.obs))
+    junk = batch.replace(
+        actions=jnp.where(later, 0.9, batch.actions), obs=jnp.where(later, 7.0, batch.obs)
+    )
     assert not np.allclose(junk.actions, batch.actions)
     np.testing.assert_allclose(float(loss_of(junk)), loss, rtol=1e-6)
     # whereas a valid step counts
@@ -200,8 +245,18 @@ def test_fit_is_deterministic_and_keeps_the_best_evaluation():
         calls.append(epoch)
         return {"avg_distance": {1: 2.0, 2: 1.0, 3: 3.0, 4: 1.5}[epoch]}
 
-    run = lambda epochs: fit(model, data, jax.random.PRNGKey(11), epochs=epochs, batch_size=4,
-                             learning_rate=1e-3, eval_every=1, evaluate=evaluate, step=step, progress=False)
+    run = lambda epochs: fit(
+        model,
+        data,
+        jax.random.PRNGKey(11),
+        epochs=epochs,
+        batch_size=4,
+        learning_rate=1e-3,
+        eval_every=1,
+        evaluate=evaluate,
+        step=step,
+        progress=False,
+    )
     a, b = run(4), run(4)
     assert calls == [1, 2, 3, 4] * 2
     assert len(a.losses) == 4 and a.losses == b.losses  # float equality
@@ -210,10 +265,22 @@ def test_fit_is_deterministic_and_keeps_the_best_evaluation():
     assert a.best_epoch == 2 and [e["epoch"] for e in a.evaluations] == [1, 2, 3, 4]
     two = run(2)
     assert two.losses == a.losses[:2]
-    assert jax.tree.all(jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a.params, two.params))
+    assert jax.tree.all(
+        jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a.params, two.params)
+    )
     # another key trains differently
-    other = fit(model, data, jax.random.PRNGKey(12), epochs=1, batch_size=4, learning_rate=1e-3, eval_every=1,
-                evaluate=evaluate, step=step, progress=False)
+    other = fit(
+        model,
+        data,
+        jax.random.PRNGKey(12),
+        epochs=1,
+        batch_size=4,
+        learning_rate=1e-3,
+        eval_every=1,
+        evaluate=evaluate,
+        step=step,
+        progress=False,
+    )
     assert other.losses[0] != a.losses[0]
 
 
@@ -223,11 +290,29 @@ def test_fit_and_the_config_reject_bad_settings():
     never = lambda params, epoch: pytest.fail("evaluated")
     for epochs, eval_every in ((3, 2), (0, 1), (2, 0)):
         with pytest.raises(ValueError, match="multiple of eval_every"):
-            fit(model, data, jax.random.PRNGKey(0), epochs=epochs, batch_size=2, learning_rate=1e-3,
-                eval_every=eval_every, evaluate=never, progress=False)
+            fit(
+                model,
+                data,
+                jax.random.PRNGKey(0),
+                epochs=epochs,
+                batch_size=2,
+                learning_rate=1e-3,
+                eval_every=eval_every,
+                evaluate=never,
+                progress=False,
+            )
     with pytest.raises(ValueError, match="empty"):
-        fit(model, data.subset(np.zeros(3, bool)), jax.random.PRNGKey(0), epochs=1, batch_size=2,
-            learning_rate=1e-3, eval_every=1, evaluate=never, progress=False)
+        fit(
+            model,
+            data.subset(np.zeros(3, bool)),
+            jax.random.PRNGKey(0),
+            epochs=1,
+            batch_size=2,
+            learning_rate=1e-3,
+            eval_every=1,
+            evaluate=never,
+            progress=False,
+        )
     tiny = config("ch4_qdt", "tiny")
     assert isinstance(tiny, QDTConfig) and isinstance(tiny.task("ant_omni"), QDTTask)
     assert tiny.task("halfcheetah_uni") is tiny.halfcheetah_uni
@@ -249,10 +334,20 @@ def test_fit_and_the_config_reject_bad_settings():
 
 # ----- playing the QDT -----
 
+
 def test_cached_play_matches_the_uncached_reference_on_ant_omni():
     env = make_env("ant_omni", episode_length=12)
-    model = QDT(action_size=env.action_size, max_steps=12, embed_dim=32, num_layers=2, num_heads=4, dropout=0.0)
-    params = jax.jit(lambda k: init_params(model, k, env.descriptor_size, env.observation_size))(jax.random.PRNGKey(14))
+    model = QDT(
+        action_size=env.action_size,
+        max_steps=12,
+        embed_dim=32,
+        num_layers=2,
+        num_heads=4,
+        dropout=0.0,
+    )
+    params = jax.jit(lambda k: init_params(model, k, env.descriptor_size, env.observation_size))(
+        jax.random.PRNGKey(14)
+    )
     params = perturbed(params, jax.random.PRNGKey(15), scale=0.05)
     goals = jnp.array([[1.0, 2.0], [-3.0, 0.5]])
     g, e = goals.shape[0], 2
@@ -263,7 +358,8 @@ def test_cached_play_matches_the_uncached_reference_on_ant_omni():
         assert ev.descriptor.shape == (g, e, env.descriptor_size)
         assert ev.fitness.shape == (g, e) and ev.length.shape == (g, e)
         assert np.all((np.asarray(ev.length) >= 1) & (np.asarray(ev.length) <= 12))
-    # the first actions agree to float precision; later ones only drift as the dynamics amplify rounding
+    # the first actions agree to float precision; later ones only drift as the dynamics amplify
+    # rounding
     np.testing.assert_allclose(cached.trajectory[:, :, 0], reference.trajectory[:, :, 0], atol=1e-5)
     np.testing.assert_allclose(cached.trajectory, reference.trajectory, atol=1e-3)
     np.testing.assert_allclose(cached.descriptor, reference.descriptor, atol=1e-3)
@@ -271,12 +367,18 @@ def test_cached_play_matches_the_uncached_reference_on_ant_omni():
     np.testing.assert_array_equal(cached.length, reference.length)
     # the goals and the starts matter: the actions are not all the same
     actions = np.asarray(cached.trajectory)
-    assert np.abs(actions[0] - actions[1]).max() > 1e-3 and np.abs(actions[:, 0] - actions[:, 1]).max() > 1e-3
+    assert (
+        np.abs(actions[0] - actions[1]).max() > 1e-3
+        and np.abs(actions[:, 0] - actions[:, 1]).max() > 1e-3
+    )
     with pytest.raises(ValueError, match="timesteps"):
-        play(env, dataclasses.replace(model, max_steps=11), params, goals, jax.random.PRNGKey(16), e)
+        play(
+            env, dataclasses.replace(model, max_steps=11), params, goals, jax.random.PRNGKey(16), e
+        )
 
 
 # ----- the datasets -----
+
 
 class FakePlayer:
     """Plays the policy whose genotype is ``{"w": [cell]}``: its episodes end at
@@ -292,8 +394,11 @@ class FakePlayer:
         def run(genotypes, key):
             cells = np.asarray(genotypes["w"][:, 0]).astype(int)
             self.played.append(cells)
-            return Evaluation(fitness=jnp.asarray(self.fitnesses[cells]), descriptor=jnp.asarray(self.descriptors[cells]),
-                              length=jnp.full((cells.size, num_episodes), 10))
+            return Evaluation(
+                fitness=jnp.asarray(self.fitnesses[cells]),
+                descriptor=jnp.asarray(self.descriptors[cells]),
+                length=jnp.full((cells.size, num_episodes), 10),
+            )
 
         return run
 
@@ -302,24 +407,56 @@ def test_select_policies_keeps_the_most_consistent_policy_of_each_zone():
     zones = jnp.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
     z = np.asarray(zones)
     n = 9
-    stored = np.array([[0.5, 0.0], [0.0, 0.0], [1.0, 1.0], [9.0, 0.0], [10.0, 1.0], [11.0, -1.0],
-                       [10.0, 10.0], [9.0, 9.0], [0.0, 0.0]])
-    fitnesses = np.array([1.0, -np.inf, 0.5, 2.0, 3.0, 10.0, 1.0, 1.0, -np.inf])  # cells 1 and 8 are empty
+    stored = np.array(
+        [
+            [0.5, 0.0],
+            [0.0, 0.0],
+            [1.0, 1.0],
+            [9.0, 0.0],
+            [10.0, 1.0],
+            [11.0, -1.0],
+            [10.0, 10.0],
+            [9.0, 9.0],
+            [0.0, 0.0],
+        ]
+    )
+    fitnesses = np.array(
+        [1.0, -np.inf, 0.5, 2.0, 3.0, 10.0, 1.0, 1.0, -np.inf]
+    )  # cells 1 and 8 are empty
     # episodes (4 each) land at the centroid of these zones
-    lands = np.array([[0, 0, 2, 2],  # cell 0, zone 0: hit 0.5, fitness 1
-                      [0, 0, 0, 0],  # empty
-                      [0, 0, 0, 1],  # cell 2, zone 0: hit 0.75, fitness 0.5 -> kept (hits first)
-                      [1, 1, 3, 3],  # cell 3, zone 1: hit 0.5, fitness 2
-                      [1, 0, 1, 2],  # cell 4, zone 1: hit 0.5, fitness 3 -> kept (tie: fitness)
-                      [1, 0, 0, 0],  # cell 5, zone 1: hit 0.25, fitness 10
-                      [3, 3, 3, 3],  # cell 6, zone 3: hit 1, fitness 1 -> kept (tie: lower cell)
-                      [3, 3, 3, 3],  # cell 7, zone 3: hit 1, fitness 1
-                      [2, 2, 2, 2]])  # empty; zone 2 has no stored policy and keeps nothing
-    episode_fitness = np.array([[0.0, 2.0, 1.0, 1.0], [9, 9, 9, 9], [0.5] * 4, [2.0] * 4, [1.0, 5.0, 3.0, 3.0],
-                                [10.0] * 4, [1.0] * 4, [1.0] * 4, [9, 9, 9, 9]])
+    lands = np.array(
+        [
+            [0, 0, 2, 2],  # cell 0, zone 0: hit 0.5, fitness 1
+            [0, 0, 0, 0],  # empty
+            [0, 0, 0, 1],  # cell 2, zone 0: hit 0.75, fitness 0.5 -> kept (hits first)
+            [1, 1, 3, 3],  # cell 3, zone 1: hit 0.5, fitness 2
+            [1, 0, 1, 2],  # cell 4, zone 1: hit 0.5, fitness 3 -> kept (tie: fitness)
+            [1, 0, 0, 0],  # cell 5, zone 1: hit 0.25, fitness 10
+            [3, 3, 3, 3],  # cell 6, zone 3: hit 1, fitness 1 -> kept (tie: lower cell)
+            [3, 3, 3, 3],  # cell 7, zone 3: hit 1, fitness 1
+            [2, 2, 2, 2],
+        ]
+    )  # empty; zone 2 has no stored policy and keeps nothing
+    episode_fitness = np.array(
+        [
+            [0.0, 2.0, 1.0, 1.0],
+            [9, 9, 9, 9],
+            [0.5] * 4,
+            [2.0] * 4,
+            [1.0, 5.0, 3.0, 3.0],
+            [10.0] * 4,
+            [1.0] * 4,
+            [1.0] * 4,
+            [9, 9, 9, 9],
+        ]
+    )
     player = FakePlayer(z[lands] + 0.1, episode_fitness)
-    repertoire = Repertoire(genotypes={"w": jnp.arange(n)[:, None] * 1.0}, fitnesses=jnp.asarray(fitnesses),
-                            descriptors=jnp.asarray(stored), centroids=jnp.asarray(stored) + 0.01)
+    repertoire = Repertoire(
+        genotypes={"w": jnp.arange(n)[:, None] * 1.0},
+        fitnesses=jnp.asarray(fitnesses),
+        descriptors=jnp.asarray(stored),
+        centroids=jnp.asarray(stored) + 0.01,
+    )
     sel = select_policies(repertoire, zones, player, 4, jax.random.PRNGKey(0))
     assert len(player.played) == 1
     np.testing.assert_array_equal(player.played[0], [0, 2, 3, 4, 5, 6, 7])  # empty cells never play
@@ -337,8 +474,14 @@ def test_select_policies_keeps_the_most_consistent_policy_of_each_zone():
 
 def points_dataset(bd):
     n = bd.shape[0]
-    return Trajectories(bd=jnp.asarray(bd), obs=jnp.zeros((n, 2, 1)), actions=jnp.zeros((n, 2, 1)),
-                        valid=jnp.ones((n, 2), bool), fitness=jnp.zeros(n), policy=jnp.arange(n))
+    return Trajectories(
+        bd=jnp.asarray(bd),
+        obs=jnp.zeros((n, 2, 1)),
+        actions=jnp.zeros((n, 2, 1)),
+        valid=jnp.ones((n, 2), bool),
+        fitness=jnp.zeros(n),
+        policy=jnp.arange(n),
+    )
 
 
 def test_pruned_datasets_keep_fractions_and_drop_regions():
@@ -352,7 +495,9 @@ def test_pruned_datasets_keep_fractions_and_drop_regions():
         kept = prune(data, name, low, high, 2, jax.random.PRNGKey(1))
         policy = np.asarray(kept.policy)
         assert kept.size == round(n * fraction) == len(set(policy.tolist()))
-        np.testing.assert_array_equal(np.asarray(kept.bd), bd[policy])  # whole trajectories, unchanged
+        np.testing.assert_array_equal(
+            np.asarray(kept.bd), bd[policy]
+        )  # whole trajectories, unchanged
         np.testing.assert_array_equal(np.asarray(removed_region(name, bd, low, high, 2)), False)
     half = lambda key: set(np.asarray(prune(data, "50%", low, high, 2, key).policy).tolist())
     assert half(jax.random.PRNGKey(1)) == half(jax.random.PRNGKey(1)) != half(jax.random.PRNGKey(2))
@@ -368,8 +513,9 @@ def test_pruned_datasets_keep_fractions_and_drop_regions():
     # upper: the second descriptor above the middle goes
     upper = bd[:, 1] > 0.5
     np.testing.assert_array_equal(removed_upper(bd, low, high), upper)
-    np.testing.assert_array_equal(np.asarray(prune(data, "upper", low, high, 2, jax.random.PRNGKey(1)).bd),
-                                  bd[~upper])
+    np.testing.assert_array_equal(
+        np.asarray(prune(data, "upper", low, high, 2, jax.random.PRNGKey(1)).bd), bd[~upper]
+    )
     with pytest.raises(ValueError, match="unknown pruning"):
         removed_region("left", bd, low, high, 2)
     with pytest.raises(ValueError, match="unknown pruning"):
@@ -377,60 +523,92 @@ def test_pruned_datasets_keep_fractions_and_drop_regions():
     counts = density(bd, low, high, 2)
     assert counts.shape == (2, 2) and counts.sum() == n
     # rows are the second descriptor
-    np.testing.assert_array_equal(counts, [[np.sum(left & bottom), np.sum(~left & bottom)],
-                                           [np.sum(left & ~bottom), np.sum(~left & ~bottom)]])
+    np.testing.assert_array_equal(
+        counts,
+        [
+            [np.sum(left & bottom), np.sum(~left & bottom)],
+            [np.sum(left & ~bottom), np.sum(~left & ~bottom)],
+        ],
+    )
 
 
 def test_recorded_datasets_are_the_episodes_the_policies_play():
     """``record`` (a recording Player) gives the same fitness and descriptors as the
     plain Player, one trajectory per (kept policy, episode), labelled with the
     descriptor it achieved, and obs/actions that replay to it."""
-    from qdnb.qd.reproducibility import Player
-    from qdnb.qdt.data import record
-    from qdnb.rl.networks import MLP, init_policies
+    from qdnb.envs.player import Player
+    from qdnb.models.qdt.data import record
+    from qdnb.nets.mlp import MLP, init_policies
 
     env = make_env("pointmaze", episode_length=15)
     net = MLP((8, env.action_size))
     params = init_policies(net, jax.random.PRNGKey(0), 4, env.observation_size)
-    rep = Repertoire(genotypes=params, fitnesses=jnp.array([1.0, -jnp.inf, 2.0, 3.0]),
-                     descriptors=jnp.zeros((4, 2)), centroids=jnp.zeros((4, 2)))
-    data = record(rep, np.array([0, 3]), 3, Player(env, net, chunk=4, record=True), jax.random.PRNGKey(1))
+    rep = Repertoire(
+        genotypes=params,
+        fitnesses=jnp.array([1.0, -jnp.inf, 2.0, 3.0]),
+        descriptors=jnp.zeros((4, 2)),
+        centroids=jnp.zeros((4, 2)),
+    )
+    data = record(
+        rep, np.array([0, 3]), 3, Player(env, net, chunk=4, record=True), jax.random.PRNGKey(1)
+    )
     assert data.size == 6 and data.obs.shape == (6, 15, env.observation_size)
     assert data.actions.shape == (6, 15, env.action_size) and data.valid.shape == (6, 15)
     np.testing.assert_array_equal(data.policy, [0, 0, 0, 3, 3, 3])
-    plain = Player(env, net, chunk=4).play(jax.tree.map(lambda x: x[np.array([0, 0, 0, 3, 3, 3])], params),
-                                           jax.random.split(jax.random.PRNGKey(1), 6))
+    plain = Player(env, net, chunk=4).play(
+        jax.tree.map(lambda x: x[np.array([0, 0, 0, 3, 3, 3])], params),
+        jax.random.split(jax.random.PRNGKey(1), 6),
+    )
     np.testing.assert_allclose(data.bd, plain.descriptor, atol=1e-6)
     np.testing.assert_allclose(data.fitness, plain.fitness, atol=1e-5)
     # the recorded actions are the policy's actions on the recorded observations
-    replay = jax.vmap(lambda p, o: net.apply(p, o))(jax.tree.map(lambda x: x[data.policy], params), data.obs)
+    replay = jax.vmap(lambda p, o: net.apply(p, o))(
+        jax.tree.map(lambda x: x[data.policy], params), data.obs
+    )
     np.testing.assert_allclose(replay, data.actions, atol=1e-5)
 
 
 def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, monkeypatch):
     """``load_or_recompute_repertoires`` loads matching files, recomputes (and saves)
     missing ones and those saved under another config, and says which happened."""
-    from qdnb import paths
-    from qdnb.qd.reproducibility import save_repertoires
-    from qdnb.qdt import data as qdt_data
-    from qdnb.scale import config_hash
+    from qdnb.chapters.ch4_reproducibility import save_repertoires
+    from qdnb.core import paths
+    from qdnb.core.config import config_hash
+    from qdnb.models.qdt import data as qdt_data
 
     monkeypatch.setattr(paths, "RUNS", tmp_path)
     repro = dataclasses.replace(config("ch4_reproducibility", "tiny"), environments=("ant_omni",))
-    stub = Repertoire(genotypes={"w": jnp.ones((1, 3, 2))}, fitnesses=jnp.array([[1.0, -jnp.inf, 2.0]]),
-                      descriptors=jnp.zeros((1, 3, 2)), centroids=jnp.zeros((1, 3, 2)))
+    stub = Repertoire(
+        genotypes={"w": jnp.ones((1, 3, 2))},
+        fitnesses=jnp.array([[1.0, -jnp.inf, 2.0]]),
+        descriptors=jnp.zeros((1, 3, 2)),
+        centroids=jnp.zeros((1, 3, 2)),
+    )
     calls = []
 
     def fake_run_environment(cfg, env_name, key, progress, methods):
         calls.append(methods)
-        return {"methods": {m: {"repertoire": stub, "spread_at_insertion": np.zeros((1, 3)),
-                                "reassessed_spread": np.zeros((1, 3))} for m in methods}}
+        return {
+            "methods": {
+                m: {
+                    "repertoire": stub,
+                    "spread_at_insertion": np.zeros((1, 3)),
+                    "reassessed_spread": np.zeros((1, 3)),
+                }
+                for m in methods
+            }
+        }
 
     monkeypatch.setattr(qdt_data, "run_environment", fake_run_environment)
     good = qdt_data.repertoire_path("tiny", "ant_omni", "ME")
     save_repertoires(good, config_hash(repro), stub, np.zeros((1, 3)), np.zeros((1, 3)))
-    save_repertoires(qdt_data.repertoire_path("tiny", "ant_omni", "ME-LS"), "another-config", stub,
-                     np.zeros((1, 3)), np.zeros((1, 3)))
+    save_repertoires(
+        qdt_data.repertoire_path("tiny", "ant_omni", "ME-LS"),
+        "another-config",
+        stub,
+        np.zeros((1, 3)),
+        np.zeros((1, 3)),
+    )
     reps, status = qdt_data.load_or_recompute_repertoires(repro, "tiny", 0, progress=False)
     assert status["ant_omni"]["ME"] == "loaded"
     assert status["ant_omni"]["ME-LS"] == "recomputed: computed under another config"
@@ -438,4 +616,6 @@ def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, mo
     assert calls == [("ME-LS", "PGA-ME", "PGA-ME-LS")]  # one run, only what was needed
     np.testing.assert_array_equal(reps["ant_omni"]["PGA-ME"]["fitnesses"], stub.fitnesses)
     _, status = qdt_data.load_or_recompute_repertoires(repro, "tiny", 0, progress=False)
-    assert set(status["ant_omni"].values()) == {"loaded"} and len(calls) == 1  # saved the first time
+    assert (
+        set(status["ant_omni"].values()) == {"loaded"} and len(calls) == 1
+    )  # saved the first time

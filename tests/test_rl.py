@@ -3,16 +3,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from qdnb.nets.mlp import MLP
 from qdnb.rl.buffer import ReplayBuffer
-from qdnb.rl.networks import MLP
 from qdnb.rl.td3 import TD3, TD3Config, td3_target
 
 
 def _transitions(values):
     v = jnp.asarray(values, jnp.float32)
     n = v.shape[0]
-    return {"obs": jnp.tile(v[:, None], (1, 2)), "action": v[:, None], "reward": v,
-            "next_obs": jnp.tile(v[:, None] + 1, (1, 2)), "terminal": jnp.zeros(n)}
+    return {
+        "obs": jnp.tile(v[:, None], (1, 2)),
+        "action": v[:, None],
+        "reward": v,
+        "next_obs": jnp.tile(v[:, None] + 1, (1, 2)),
+        "terminal": jnp.zeros(n),
+    }
 
 
 def test_replay_buffer_wraps_around_and_skips_invalid():
@@ -31,14 +36,24 @@ def test_replay_buffer_wraps_around_and_skips_invalid():
 
 
 def test_td3_target_hand_checked():
-    y = td3_target(reward=jnp.array([1.0, 0.5, -1.0]), terminal=jnp.array([0.0, 1.0, 0.0]),
-                   next_q1=jnp.array([10.0, 10.0, -2.0]), next_q2=jnp.array([8.0, 12.0, -3.0]), gamma=0.9)
+    y = td3_target(
+        reward=jnp.array([1.0, 0.5, -1.0]),
+        terminal=jnp.array([0.0, 1.0, 0.0]),
+        next_q1=jnp.array([10.0, 10.0, -2.0]),
+        next_q2=jnp.array([8.0, 12.0, -3.0]),
+        gamma=0.9,
+    )
     # 1 + 0.9 * min(10, 8); terminal: reward only; -1 + 0.9 * min(-2, -3)
     np.testing.assert_allclose(y, [1 + 0.9 * 8, 0.5, -1 + 0.9 * -3], rtol=1e-6)
 
 
 def test_td3_target_uses_smoothed_clipped_target_actions():
-    td3 = TD3(MLP((4, 1)), observation_size=2, action_size=1, config=TD3Config(critic_hidden=(8,), policy_noise=0.0))
+    td3 = TD3(
+        MLP((4, 1)),
+        observation_size=2,
+        action_size=1,
+        config=TD3Config(critic_hidden=(8,), policy_noise=0.0),
+    )
     state = td3.init(jax.random.PRNGKey(0))
     batch = _transitions([0.5, -0.5])
     y = td3.target(state.critic_target, state.actor_target, batch, jax.random.PRNGKey(1))
@@ -50,13 +65,20 @@ def test_td3_target_uses_smoothed_clipped_target_actions():
 def test_td3_learns_a_one_step_bandit():
     """Reward = -(a - 0.5)^2 and terminal transitions: the critic learns it and
     the actor's action moves to 0.5."""
-    cfg = TD3Config(critic_hidden=(32, 32), batch_size=64, critic_lr=3e-3, actor_lr=3e-3, policy_delay=2)
+    cfg = TD3Config(
+        critic_hidden=(32, 32), batch_size=64, critic_lr=3e-3, actor_lr=3e-3, policy_delay=2
+    )
     td3 = TD3(MLP((16, 1)), observation_size=1, action_size=1, config=cfg)
     state = td3.init(jax.random.PRNGKey(0))
     key = jax.random.PRNGKey(1)
     actions = jax.random.uniform(key, (512, 1), minval=-1, maxval=1)
-    data = {"obs": jnp.zeros((512, 1)), "action": actions, "reward": -(actions[:, 0] - 0.5) ** 2,
-            "next_obs": jnp.zeros((512, 1)), "terminal": jnp.ones(512)}
+    data = {
+        "obs": jnp.zeros((512, 1)),
+        "action": actions,
+        "reward": -((actions[:, 0] - 0.5) ** 2),
+        "next_obs": jnp.zeros((512, 1)),
+        "terminal": jnp.ones(512),
+    }
     buf = ReplayBuffer.create(512, 1, 1).add(data)
 
     state, losses = jax.jit(lambda s, k: td3.train_critic(s, buf, k, 1500))(state, key)
@@ -74,23 +96,39 @@ def test_td3_learns_a_one_step_bandit():
 
 def test_pga_me_and_pga_me_ls_iterate_fill_the_buffer_and_train_the_critic():
     from qdnb.envs import make_env
-    from qdnb.qd.algorithms import PGAMapElites, PGAMapElitesLowSpread
     from qdnb.qd.cvt import grid_centroids
+    from qdnb.qd.pga import PGAMapElites, PGAMapElitesLowSpread
 
     env = make_env("pointmaze", episode_length=20)
-    common = dict(env=env, network=MLP((8, 2)), batch_size=6, iso_sigma=0.05, line_sigma=0.1,
-                  centroids=grid_centroids((4, 4), (-1, -1), (1, 1)), fitness_offset=-100.0,
-                  td3_config=TD3Config(critic_hidden=(16,), batch_size=8), num_critic_steps=4, num_pg_steps=3,
-                  buffer_size=2000)
-    for algo, episodes in [(PGAMapElites(**common), 1), (PGAMapElitesLowSpread(**common, num_episodes=2), 2)]:
+    common = dict(
+        env=env,
+        network=MLP((8, 2)),
+        batch_size=6,
+        iso_sigma=0.05,
+        line_sigma=0.1,
+        centroids=grid_centroids((4, 4), (-1, -1), (1, 1)),
+        fitness_offset=-100.0,
+        td3_config=TD3Config(critic_hidden=(16,), batch_size=8),
+        num_critic_steps=4,
+        num_pg_steps=3,
+        buffer_size=2000,
+    )
+    for algo, episodes in [
+        (PGAMapElites(**common), 1),
+        (PGAMapElitesLowSpread(**common, num_episodes=2), 2),
+    ]:
         state, ev = jax.jit(algo.init)(jax.random.PRNGKey(0))
         assert int(state.buffer.size) == int(ev.length.sum())  # every valid transition, no more
-        assert int(state.td3.steps) == 4  # the initial batch trains the critic before the first emission
+        assert (
+            int(state.td3.steps) == 4
+        )  # the initial batch trains the critic before the first emission
         step = jax.jit(algo.step)
         state2, ev2 = step(state)
         assert ev2.fitness.shape == ((6,) if episodes == 1 else (6, 2))
         assert int(state2.buffer.size) == int(ev.length.sum() + ev2.length.sum())
         assert int(state2.td3.steps) == 8  # num_critic_steps more per step
-        critic_moved = jax.tree.leaves(jax.tree.map(lambda a, b: jnp.abs(a - b).max(), state.td3.critic, state2.td3.critic))
+        critic_moved = jax.tree.leaves(
+            jax.tree.map(lambda a, b: jnp.abs(a - b).max(), state.td3.critic, state2.td3.critic)
+        )
         assert max(float(x) for x in critic_moved) > 0
         assert bool(algo.elites(state2.repertoire).filled.any())

@@ -60,7 +60,6 @@ import numpy as np
 
 from qdnb.envs.base import Env, EnvState
 
-
 _QUIET_LOCK = threading.Lock()
 
 
@@ -72,8 +71,12 @@ def _quiet():
     Exceptions still propagate.  The swap of the process's file descriptors is
     serialised, so that models loaded from several threads at once cannot leave
     stdout or stderr pointing at ``/dev/null``."""
-    with _QUIET_LOCK, warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
-            contextlib.redirect_stderr(io.StringIO()):
+    with (
+        _QUIET_LOCK,
+        warnings.catch_warnings(),
+        contextlib.redirect_stdout(io.StringIO()),
+        contextlib.redirect_stderr(io.StringIO()),
+    ):
         warnings.filterwarnings("ignore", message="Brax System", category=UserWarning)
         saved = [os.dup(fd) for fd in (1, 2)]
         null = os.open(os.devnull, os.O_WRONLY)
@@ -117,7 +120,9 @@ class BraxTask(Env):
     def reset(self, key: jax.Array) -> EnvState:
         sys = self.brax_env.sys
         k_q, k_qd = jax.random.split(key)
-        q = sys.init_q + self.reset_noise * jnp.asarray(self._noise_mask()) * jax.random.normal(k_q, (sys.q_size(),))
+        q = sys.init_q + self.reset_noise * jnp.asarray(self._noise_mask()) * jax.random.normal(
+            k_q, (sys.q_size(),)
+        )
         qd = self.reset_noise * jax.random.normal(k_qd, (sys.qd_size(),))
         return self.state_at(q, qd)
 
@@ -162,9 +167,11 @@ class QDaxReset:
     def reset(self, key: jax.Array) -> EnvState:
         sys = self.brax_env.sys
         k_q, k_qd = jax.random.split(key)
-        u = lambda k, n: jax.random.uniform(k, (n,), minval=-self.reset_noise, maxval=self.reset_noise)
-        q = sys.init_q.at[self.root_q:].add(u(k_q, sys.q_size() - self.root_q))
-        qd = jnp.zeros(sys.qd_size()).at[self.root_qd:].set(u(k_qd, sys.qd_size() - self.root_qd))
+        u = lambda k, n: jax.random.uniform(
+            k, (n,), minval=-self.reset_noise, maxval=self.reset_noise
+        )
+        q = sys.init_q.at[self.root_q :].add(u(k_q, sys.q_size() - self.root_q))
+        qd = jnp.zeros(sys.qd_size()).at[self.root_qd :].set(u(k_qd, sys.qd_size() - self.root_qd))
         return self.state_at(q, qd)
 
 
@@ -181,12 +188,21 @@ class AntOmni(QDaxReset, BraxTask):
     root_qd: int = 6
 
     def __post_init__(self):
-        if len(self.descriptor_low) != 2 or len(self.descriptor_high) != 2 or \
-                not all(lo < hi for lo, hi in zip(self.descriptor_low, self.descriptor_high)):
-            raise ValueError(f"the descriptor box needs two bounds per axis with low < high, got "
-                             f"{self.descriptor_low} and {self.descriptor_high}")
-        env = _brax_env("ant", self.backend, exclude_current_positions_from_observation=True,
-                        terminate_when_unhealthy=False)  # termination is ours, in ``step``
+        if (
+            len(self.descriptor_low) != 2
+            or len(self.descriptor_high) != 2
+            or not all(lo < hi for lo, hi in zip(self.descriptor_low, self.descriptor_high))
+        ):
+            raise ValueError(
+                f"the descriptor box needs two bounds per axis with low < high, got "
+                f"{self.descriptor_low} and {self.descriptor_high}"
+            )
+        env = _brax_env(
+            "ant",
+            self.backend,
+            exclude_current_positions_from_observation=True,
+            terminate_when_unhealthy=False,
+        )  # termination is ours, in ``step``
         object.__setattr__(self, "brax_env", env)
         object.__setattr__(self, "observation_size", brax_observation_size(env))
         object.__setattr__(self, "action_size", env.action_size)
@@ -214,7 +230,11 @@ class AntOmni(QDaxReset, BraxTask):
 
     def behaviour_descriptor(self, last_state_descriptor, state_descriptor_sum, length):
         del state_descriptor_sum, length
-        return jnp.clip(last_state_descriptor, jnp.asarray(self.descriptor_low), jnp.asarray(self.descriptor_high))
+        return jnp.clip(
+            last_state_descriptor,
+            jnp.asarray(self.descriptor_low),
+            jnp.asarray(self.descriptor_high),
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -231,7 +251,9 @@ class HalfcheetahUni(QDaxReset, BraxTask):
     def __post_init__(self):
         import mujoco
 
-        env = _brax_env("halfcheetah", self.backend, debug=True)  # debug: keep the contacts in the state
+        env = _brax_env(
+            "halfcheetah", self.backend, debug=True
+        )  # debug: keep the contacts in the state
         model = env.sys.mj_model
         feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) for name in self.feet]
         if min(feet) < 0:
@@ -246,7 +268,9 @@ class HalfcheetahUni(QDaxReset, BraxTask):
         the ground, else 0.0."""
         c = pipeline_state.contact
         touching = c.dist < 0.0
-        return jnp.stack([jnp.any(touching & ((c.geom1 == g) | (c.geom2 == g))) for g in self._feet]).astype(jnp.float32)
+        return jnp.stack(
+            [jnp.any(touching & ((c.geom1 == g) | (c.geom2 == g))) for g in self._feet]
+        ).astype(jnp.float32)
 
     def _state_descriptor(self, pipeline_state) -> jax.Array:
         return self.foot_contacts(pipeline_state)

@@ -81,7 +81,13 @@ WALL_RADIUS = 0.5
 WALL_HEIGHT = 0.5  # height of a wall's axis: its capsule touches the floor
 WALL_CONTYPE, WALL_CONAFFINITY = 0, 2
 # Geoms of brax's ant.xml that walls collide with: the torso and the lower legs.
-WALL_COLLIDERS = ("torso_geom", "left_ankle_geom", "right_ankle_geom", "third_ankle_geom", "fourth_ankle_geom")
+WALL_COLLIDERS = (
+    "torso_geom",
+    "left_ankle_geom",
+    "right_ankle_geom",
+    "third_ankle_geom",
+    "fourth_ankle_geom",
+)
 
 ANTMAZE_WALLS: tuple[Segment, ...] = (
     ((-5.0, -5.0), (-5.0, 40.0)),  # borders
@@ -118,12 +124,20 @@ def ant_xml_with_walls(walls: tuple[Segment, ...]) -> str:
         geom.set("contype", str(int(geom.get("contype", "0")) | WALL_CONAFFINITY))
     worldbody = root.find("worldbody")
     for i, ((x0, y0), (x1, y1)) in enumerate(walls):
-        ElementTree.SubElement(worldbody, "geom", {
-            "name": f"wall_{i}", "type": "capsule", "size": str(WALL_RADIUS),
-            "fromto": f"{x0} {y0} {WALL_HEIGHT} {x1} {y1} {WALL_HEIGHT}",
-            "contype": str(WALL_CONTYPE), "conaffinity": str(WALL_CONAFFINITY),
-            "condim": "3", "rgba": "0.7 0.5 0.3 1",
-        })
+        ElementTree.SubElement(
+            worldbody,
+            "geom",
+            {
+                "name": f"wall_{i}",
+                "type": "capsule",
+                "size": str(WALL_RADIUS),
+                "fromto": f"{x0} {y0} {WALL_HEIGHT} {x1} {y1} {WALL_HEIGHT}",
+                "contype": str(WALL_CONTYPE),
+                "conaffinity": str(WALL_CONAFFINITY),
+                "condim": "3",
+                "rgba": "0.7 0.5 0.3 1",
+            },
+        )
     return ElementTree.tostring(root, encoding="unicode")
 
 
@@ -136,8 +150,14 @@ def brax_ant_with_walls(walls: tuple[Segment, ...], backend: str = "spring"):
     Brax's observation, ``n_frames`` and pipeline are kept; its reward and
     termination are not used.
     """
-    env = _brax_env("ant", backend, exclude_current_positions_from_observation=True,
-                    terminate_when_unhealthy=False, healthy_reward=0.0, ctrl_cost_weight=0.0)
+    env = _brax_env(
+        "ant",
+        backend,
+        exclude_current_positions_from_observation=True,
+        terminate_when_unhealthy=False,
+        healthy_reward=0.0,
+        ctrl_cost_weight=0.0,
+    )
     xml = ant_xml_with_walls(walls)
     with _quiet():
         from brax.io import mjcf
@@ -174,14 +194,20 @@ class _WalledAnt(BraxTask):
         return nxt.replace(done=nxt.done | (z < low) | (z > high))
 
     def _obs(self, pipeline_state) -> jax.Array:
-        return jnp.concatenate([self.brax_env._get_obs(pipeline_state), pipeline_state.x.pos[0, :2]])
+        return jnp.concatenate(
+            [self.brax_env._get_obs(pipeline_state), pipeline_state.x.pos[0, :2]]
+        )
 
     def _state_descriptor(self, pipeline_state) -> jax.Array:
         return pipeline_state.x.pos[0, :2]  # torso (x, y)
 
     def behaviour_descriptor(self, last_state_descriptor, state_descriptor_sum, length):
         del state_descriptor_sum, length
-        return jnp.clip(last_state_descriptor, jnp.asarray(self.descriptor_low), jnp.asarray(self.descriptor_high))
+        return jnp.clip(
+            last_state_descriptor,
+            jnp.asarray(self.descriptor_low),
+            jnp.asarray(self.descriptor_high),
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,4 +245,8 @@ class AntTrap(_WalledAnt):
     def _state_descriptor(self, pipeline_state) -> jax.Array:
         """Torso (x, y) clipped to the descriptor box (Section 3.6.1: the open-ended
         Ant-Trap bounds its state descriptors)."""
-        return jnp.clip(pipeline_state.x.pos[0, :2], jnp.asarray(self.descriptor_low), jnp.asarray(self.descriptor_high))
+        return jnp.clip(
+            pipeline_state.x.pos[0, :2],
+            jnp.asarray(self.descriptor_low),
+            jnp.asarray(self.descriptor_high),
+        )

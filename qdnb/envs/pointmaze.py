@@ -10,7 +10,8 @@ the thesis ran): a move whose vertical part crosses a wall's face (at an x
 inside the wall) keeps its horizontal part and stops on that face, so the point
 slides along the wall; then the arena clips it.  One case the reference leaves
 open is closed here: a move that enters a wall through its 0.01-thick end
-(which the reference lets through) drops its horizontal part.  The point never crosses a wall (`tests/test_pointmaze.py` checks both).
+(which the reference lets through) drops its horizontal part.  The point never crosses a wall
+(`tests/test_pointmaze.py` checks both).
 """
 
 from __future__ import annotations
@@ -51,7 +52,11 @@ def stop_on_faces(p: jax.Array, q: jax.Array) -> jax.Array:
 
 def inside_a_wall(p: jax.Array) -> jax.Array:
     """Whether ``p`` lies strictly inside a wall."""
-    return jnp.any(jnp.stack([(p[0] > x0) & (p[0] < x1) & (p[1] > lo) & (p[1] < hi) for x0, x1, lo, hi in WALLS]))
+    return jnp.any(
+        jnp.stack(
+            [(p[0] > x0) & (p[0] < x1) & (p[1] > lo) & (p[1] < hi) for x0, x1, lo, hi in WALLS]
+        )
+    )
 
 
 def crosses_an_end(p: jax.Array, q: jax.Array) -> jax.Array:
@@ -85,14 +90,17 @@ def maze_regions(points, tolerance: float = 1e-6) -> dict:
     x, y = points[..., 0], points[..., 1]
     (_, upper_x1, upper_lo, upper_hi), (_, _, lower_lo, lower_hi) = WALLS
     between = (y > lower_hi - tolerance) & (y < upper_lo + tolerance)
-    return {"below the lower wall": y < lower_lo + tolerance,
-            "between the walls": between,
-            "right-hand passage (x > 0.5, between the walls)": between & (x > upper_x1),
-            "above the upper wall": y > upper_hi - tolerance}
+    return {
+        "below the lower wall": y < lower_lo + tolerance,
+        "between the walls": between,
+        "right-hand passage (x > 0.5, between the walls)": between & (x > upper_x1),
+        "above the upper wall": y > upper_hi - tolerance,
+    }
 
 
 def in_goal(p: jax.Array) -> jax.Array:
-    return jnp.all(jnp.abs(p - jnp.asarray(GOAL)) <= GOAL_HALF_SIDE)
+    """Whether each position (last axis: x, y) lies in the goal square."""
+    return jnp.all(jnp.abs(p - jnp.asarray(GOAL)) <= GOAL_HALF_SIDE, axis=-1)
 
 
 @dataclass(frozen=True)

@@ -8,32 +8,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from qdnb.core.evaluation import Evaluation
 from qdnb.envs.base import Env, EnvState
 
 PolicyApply = Callable[[Any, jax.Array], jax.Array]
-
-
-@struct.dataclass
-class Evaluation:
-    """What one episode (or a batch of them, with leading axes) returns.
-
-    ``fitness`` is the episode return plus the environment's constant
-    ``fitness_shift`` (or its best reward, for environments whose
-    ``fitness_mode`` is ``"max_reward"``), ``descriptor`` the behaviour descriptor,
-    ``length`` the number of steps before the episode ended.  ``trajectory`` is
-    ``None`` unless asked for: then a dict of per-step ``obs``, ``action``,
-    ``reward``, ``next_obs``, ``done``, ``state_descriptor``,
-    ``next_state_descriptor`` and ``valid``: a transition
-    ``(s_t, a_t, r_t, s_{t+1})`` carries ``psi(s_t)``, the descriptor of the
-    state it starts from, as QD-PG stores it (Section 3.6.3), and
-    ``psi(s_{t+1})``, the point the step reached (a path drawn from these ends
-    where the episode's final descriptor is).
-    """
-
-    fitness: jax.Array
-    descriptor: jax.Array
-    length: jax.Array
-    trajectory: Any = None
 
 
 def evaluate_policies(
@@ -63,7 +41,9 @@ def evaluate_policies(
     """
     batch = jax.tree.leaves(params)[0].shape[0]
     k_reset, k_noise = jax.random.split(key)
-    states = jax.vmap(env.reset)(jax.random.split(k_reset if _noisy(exploration_noise) else key, batch))
+    states = jax.vmap(env.reset)(
+        jax.random.split(k_reset if _noisy(exploration_noise) else key, batch)
+    )
     sigma = jnp.broadcast_to(jnp.asarray(exploration_noise, jnp.float32), (batch,))
     noise_keys = jax.random.split(k_noise, batch)
 
@@ -77,16 +57,24 @@ def evaluate_policies(
         new_tally, reward = tally_step(env, tally, nxt)
         out = None
         if return_trajectory:
-            out = {"obs": state.obs, "action": action, "reward": reward, "next_obs": nxt.obs,
-                   "done": nxt.done, "terminal": nxt.done & (nxt.steps < env.episode_length),
-                   "state_descriptor": state.state_descriptor, "next_state_descriptor": nxt.state_descriptor,
-                   "valid": tally.alive}
+            out = {
+                "obs": state.obs,
+                "action": action,
+                "reward": reward,
+                "next_obs": nxt.obs,
+                "done": nxt.done,
+                "terminal": nxt.done & (nxt.steps < env.episode_length),
+                "state_descriptor": state.state_descriptor,
+                "next_state_descriptor": nxt.state_descriptor,
+                "valid": tally.alive,
+            }
         return (nxt, new_tally), out
 
     step = jax.vmap(one_env)
     init = (states, jax.vmap(lambda s: tally_start(env, s))(states))
-    (_, tally), traj = jax.lax.scan(lambda c, _: step(params, sigma, noise_keys, c), init, None,
-                                    length=env.episode_length)
+    (_, tally), traj = jax.lax.scan(
+        lambda c, _: step(params, sigma, noise_keys, c), init, None, length=env.episode_length
+    )
     if return_trajectory:
         traj = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), traj)
     return tally_evaluation(env, tally, traj)
@@ -108,8 +96,13 @@ class Tally:
 def tally_start(env: Env, state: EnvState) -> Tally:
     """The tally of one episode before its first step."""
     fitness = -jnp.inf if env.fitness_mode == "max_reward" else 0.0
-    return Tally(alive=~state.done, fitness=jnp.asarray(fitness, jnp.float32), length=jnp.zeros((), jnp.int32),
-                 sd_sum=jnp.zeros_like(state.state_descriptor), last_sd=state.state_descriptor)
+    return Tally(
+        alive=~state.done,
+        fitness=jnp.asarray(fitness, jnp.float32),
+        length=jnp.zeros((), jnp.int32),
+        sd_sum=jnp.zeros_like(state.state_descriptor),
+        last_sd=state.state_descriptor,
+    )
 
 
 def tally_step(env: Env, tally: Tally, nxt: EnvState) -> tuple[Tally, jax.Array]:
@@ -117,19 +110,29 @@ def tally_step(env: Env, tally: Tally, nxt: EnvState) -> tuple[Tally, jax.Array]
     ended count for nothing.  Returns the tally and the (masked) reward."""
     alive = tally.alive
     reward = jnp.where(alive, nxt.reward, 0.0)
-    fitness = (jnp.where(alive, jnp.maximum(tally.fitness, nxt.reward), tally.fitness)
-               if env.fitness_mode == "max_reward" else tally.fitness + reward)
-    return Tally(alive=alive & ~nxt.done, fitness=fitness, length=tally.length + alive,
-                 sd_sum=tally.sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
-                 last_sd=jnp.where(alive, nxt.state_descriptor, tally.last_sd)), reward
+    fitness = (
+        jnp.where(alive, jnp.maximum(tally.fitness, nxt.reward), tally.fitness)
+        if env.fitness_mode == "max_reward"
+        else tally.fitness + reward
+    )
+    return Tally(
+        alive=alive & ~nxt.done,
+        fitness=fitness,
+        length=tally.length + alive,
+        sd_sum=tally.sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
+        last_sd=jnp.where(alive, nxt.state_descriptor, tally.last_sd),
+    ), reward
 
 
 def tally_evaluation(env: Env, tally: Tally, trajectory: Any = None) -> Evaluation:
     """The ``Evaluation`` of a batch of finished tallies."""
     fitness = tally.fitness + env.fitness_shift if env.fitness_mode == "return" else tally.fitness
-    return Evaluation(fitness=fitness,
-                      descriptor=jax.vmap(env.behaviour_descriptor)(tally.last_sd, tally.sd_sum, tally.length),
-                      length=tally.length, trajectory=trajectory)
+    return Evaluation(
+        fitness=fitness,
+        descriptor=jax.vmap(env.behaviour_descriptor)(tally.last_sd, tally.sd_sum, tally.length),
+        length=tally.length,
+        trajectory=trajectory,
+    )
 
 
 def _noisy(exploration_noise) -> bool:
@@ -137,10 +140,17 @@ def _noisy(exploration_noise) -> bool:
     return not (isinstance(exploration_noise, (int, float)) and exploration_noise == 0.0)
 
 
-def rollout(env: Env, policy_apply: PolicyApply, params: Any, key: jax.Array,
-            return_trajectory: bool = False) -> Evaluation:
+def rollout(
+    env: Env,
+    policy_apply: PolicyApply,
+    params: Any,
+    key: jax.Array,
+    return_trajectory: bool = False,
+) -> Evaluation:
     """One episode of one policy: ``evaluate_policies`` on a batch of one."""
-    batched = evaluate_policies(env, policy_apply, jax.tree.map(lambda x: x[None], params), key, return_trajectory)
+    batched = evaluate_policies(
+        env, policy_apply, jax.tree.map(lambda x: x[None], params), key, return_trajectory
+    )
     return jax.tree.map(lambda x: x[0], batched)
 
 
@@ -156,5 +166,7 @@ def evaluate_episodes(
     different initial states, in one vmapped call (the parameters are shared by
     the episodes, not copied).  Leaves have shape ``(batch, num_episodes, ...)``."""
     keys = jax.random.split(key, num_episodes)
-    per_episode = jax.vmap(lambda k: evaluate_policies(env, policy_apply, params, k, return_trajectory))(keys)
+    per_episode = jax.vmap(
+        lambda k: evaluate_policies(env, policy_apply, params, k, return_trajectory)
+    )(keys)
     return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), per_episode)

@@ -97,7 +97,9 @@ def gp_posterior(
 
 
 def normalise(
-    descriptors: jax.Array, valid: jax.Array, bounds: tuple[Sequence[float], Sequence[float]] | None = None
+    descriptors: jax.Array,
+    valid: jax.Array,
+    bounds: tuple[Sequence[float], Sequence[float]] | None = None,
 ) -> jax.Array:
     """Descriptors mapped to ``[0, 1]`` per dimension, by ``bounds = (low, high)``
     or, without bounds, by the min/max over the valid descriptors (a dimension
@@ -188,7 +190,9 @@ def _search_result(queried: jax.Array, observed: jax.Array) -> dict[str, jax.Arr
 
 
 @partial(jax.jit, static_argnames="budget")
-def random_search(valid: jax.Array, scores: jax.Array, key: jax.Array, budget: int = 20) -> dict[str, jax.Array]:
+def random_search(
+    valid: jax.Array, scores: jax.Array, key: jax.Array, budget: int = 20
+) -> dict[str, jax.Array]:
     """Baseline: ``budget`` distinct valid solutions drawn uniformly at random;
     same outputs as :func:`bayes_opt` (``best_score``, ``best_index``,
     ``queried``, ``observed``, ``best_so_far``, ``num_evaluations``)."""
@@ -203,15 +207,23 @@ def random_search(valid: jax.Array, scores: jax.Array, key: jax.Array, budget: i
     return _search_result(queried, observed)
 
 
-def reach_scores(positions: jax.Array, goal: jax.Array) -> jax.Array:
+def reach_scores(
+    positions: jax.Array, goal: jax.Array, alive: jax.Array | None = None
+) -> jax.Array:
     """Ant-Maze score of each stored solution for a goal (Section 3.7): the best
     reward of its episode, ``-min_t ||goal - xy_t||``, from ``positions``
-    (n, T, 2) the recorded ``(x, y)`` trajectories (pad a short episode by
-    repeating its last position)."""
-    return -jnp.min(jnp.linalg.norm(positions - goal, axis=-1), axis=-1)
+    (n, T, 2) the recorded ``(x, y)`` trajectories; ``alive`` (n, T) masks the
+    steps after an episode ended (or pad a short episode by repeating its last
+    position)."""
+    dist = jnp.linalg.norm(positions - goal, axis=-1)
+    if alive is not None:
+        dist = jnp.where(alive, dist, jnp.inf)
+    return -jnp.min(dist, axis=-1)
 
 
-def random_goals(key: jax.Array, num: int, low: Sequence[float], high: Sequence[float]) -> jax.Array:
+def random_goals(
+    key: jax.Array, num: int, low: Sequence[float], high: Sequence[float]
+) -> jax.Array:
     """``num`` goals drawn uniformly in the box ``[low, high]``, shape (num, d)."""
     low_a, high_a = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
     return jax.random.uniform(key, (num, low_a.shape[0]), minval=low_a, maxval=high_a)

@@ -7,15 +7,14 @@ what they select and keep:
   (Section 2.2.1): keep the ``population_size`` fittest of parents and offspring;
 - ``NoveltySearch``: the same loop where the novelty of Eq. 2.5 replaces the
   fitness (Lehman and Stanley, 2011a), with a novelty archive;
-- ``MapElites``: Algorithm 1, uniform selection from a repertoire whose cells each
-  keep their best solution.
+- ``PolicyMapElites``: Algorithm 1 (``qdnb.qd.map_elites.MapElites``) over
+  policies, uniform selection from a repertoire whose cells each keep their best.
 
-Chapter 4, on MapElites' selection and iso+line variation:
+Chapter 4, on MAP-Elites' selection and iso+line variation:
 
 - ``MapElitesSampling`` and ``MapElitesLowSpread`` (Algorithm 6): several
-  episodes per candidate, with their own insertion rules;
-- ``PGAMapElites`` (Algorithm 5) and ``PGAMapElitesLowSpread`` (Algorithm 7):
-  half the offspring from TD3 policy-gradient steps on a shared critic.
+  episodes per candidate, with their own insertion rules (PGA-ME and its
+  Low-Spread variant are in ``qdnb.qd.pga``, QD-PG in ``qdnb.qd.qdpg``).
 
 Each has ``init(key) -> (state, evaluation)`` and ``step(state) -> (state,
 evaluation)``, pure functions ready for ``jit``, ``vmap`` over seeds and
@@ -36,19 +35,23 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from qdnb.core.evaluation import Evaluation
+from qdnb.core.loops import scan_in_chunks
+from qdnb.core.tree import concat, take
 from qdnb.envs.base import Env
-from qdnb.envs.rollout import Evaluation, evaluate_episodes, evaluate_policies
+from qdnb.envs.rollout import evaluate_episodes, evaluate_policies
+from qdnb.nets.mlp import MLP, init_policies
 from qdnb.qd import repertoire as rep_lib
-from qdnb.qd.low_spread import LowSpreadRepertoire, geometric_median, insert_low_spread, low_spread_scores
-from qdnb.qd.metrics import qd_metrics
+from qdnb.qd.low_spread import (
+    LowSpreadRepertoire,
+    geometric_median,
+    insert_low_spread,
+    low_spread_scores,
+)
+from qdnb.qd.map_elites import MapElites, MapElitesState  # noqa: F401  (MapElitesState: the state of the family)
+from qdnb.qd.metrics import ExplorationTrack
 from qdnb.qd.novelty import NoveltyArchive, knn_novelty
 from qdnb.qd.variation import isoline_variation
-from qdnb.rl.buffer import ReplayBuffer
-from qdnb.rl.networks import MLP, init_policies
-from qdnb.rl.td3 import TD3, TD3Config, TD3State
-
-take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)
-concat = lambda a, b: jax.tree.map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,80 +156,45 @@ class NoveltySearch(PolicySearch):
         return {"max_fitness": jnp.max(state.fitnesses), "archive_size": state.archive.size}
 
 
-@struct.dataclass
-class MapElitesState:
-    repertoire: Any  # a Repertoire, or a LowSpreadRepertoire for ME-LS
-    key: jax.Array
-    offspring: Any = None  # the batch the next step evaluates
+@dataclass(frozen=True, eq=False)
+class PolicyMapElites(PolicySearch, MapElites):
+    """MAP-Elites over policies: the generic ``qdnb.qd.map_elites.MapElites`` whose
+    genotypes are network parameters, scored by episodes in ``env`` and varied by
+    iso+line.  ``collect_transitions`` keeps the episodes' per-step transitions
+    (for a replay buffer)."""
+
+    collect_transitions: bool = False
+
+    def score(self, genotypes: Any, key: jax.Array) -> Evaluation:
+        return self.evaluate(genotypes, key, self.collect_transitions)
+
+    def random_genotypes(self, key: jax.Array) -> Any:
+        return self.random_policies(key)
 
 
 @dataclass(frozen=True, eq=False)
-class MapElites(PolicySearch):
-    """MAP-Elites (Algorithm 1) with batched selection, variation and insertion.
-
-    Variants change how a batch is evaluated and inserted
-    (``evaluate_and_insert``) and what the archive holds (``empty_archive``,
-    ``elites``); selection and variation stay those of MAP-Elites.
-    """
-
-    centroids: jax.Array | None = None
-    fitness_offset: float = 0.0
-    collect_transitions: bool = False  # keep per-step transitions (for a replay buffer)
-
-    def empty_archive(self, params: Any) -> Any:
-        return rep_lib.init_repertoire(self.centroids, take(params, 0))
-
-    def elites(self, archive: Any) -> rep_lib.Repertoire:
-        return archive
-
-    def evaluate_and_insert(self, archive: Any, genotypes: Any, key: jax.Array) -> tuple[Any, Evaluation]:
-        """One episode per candidate, fitness-only insertion."""
-        ev = self.evaluate(genotypes, key, self.collect_transitions)
-        archive, _ = rep_lib.insert(archive, genotypes, ev.fitness, ev.descriptor)
-        return archive, ev
-
-    def start(self, key: jax.Array) -> MapElitesState:
-        """An empty archive and ``batch_size`` random policies waiting to be evaluated."""
-        k_init, key = jax.random.split(key)
-        params = self.random_policies(k_init)
-        return MapElitesState(self.empty_archive(params), key, params)
-
-    def init(self, key: jax.Array) -> tuple[MapElitesState, Evaluation]:
-        """The state after the initial batch: ``step(start(key))``."""
-        return self.step(self.start(key))
-
-    def emit(self, state: MapElitesState, key: jax.Array) -> Any:
-        """The next batch: iso+line offspring of parents drawn uniformly from the elites."""
-        k_sel, k_vary = jax.random.split(key)
-        return self.vary(rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size), k_vary)
-
-    def step(self, state: MapElitesState) -> tuple[MapElitesState, Evaluation]:
-        key, k_eval, k_emit = jax.random.split(state.key, 3)
-        archive, ev = self.evaluate_and_insert(state.repertoire, state.offspring, k_eval)
-        state = state.replace(repertoire=archive, key=key)
-        return state.replace(offspring=self.emit(state, k_emit)), ev
-
-    def metrics(self, state: MapElitesState) -> dict[str, jax.Array]:
-        return qd_metrics(self.elites(state.repertoire), self.fitness_offset)
-
-
-@dataclass(frozen=True, eq=False)
-class MapElitesSampling(MapElites):
+class MapElitesSampling(PolicyMapElites):
     """ME-Sampling (Section 4.2): each candidate plays ``num_episodes`` episodes;
     mean fitness, geometric-median descriptor, fitness-only insertion."""
 
     num_episodes: int = 10
 
     def evaluate_and_insert(self, archive, genotypes, key):
-        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes,
-                               self.collect_transitions)
+        ev = evaluate_episodes(
+            self.env,
+            self.network.apply,
+            genotypes,
+            key,
+            self.num_episodes,
+            self.collect_transitions,
+        )
         descriptors = jax.vmap(geometric_median)(ev.descriptor)
         archive, _ = rep_lib.insert(archive, genotypes, jnp.mean(ev.fitness, axis=1), descriptors)
         return archive, ev
 
 
 @dataclass(frozen=True, eq=False)
-class MapElitesLowSpread(MapElites):
+class MapElitesLowSpread(PolicyMapElites):
     """MAP-Elites Low-Spread (Algorithm 6): ``num_episodes`` episodes per
     candidate, filed under its most frequent cell, inserted when that cell is
     empty or when it beats the incumbent in fitness *and* spread (Eq. 4.1)."""
@@ -240,93 +208,24 @@ class MapElitesLowSpread(MapElites):
         return archive.repertoire
 
     def evaluate_and_insert(self, archive, genotypes, key):
-        ev = evaluate_episodes(self.env, self.network.apply, genotypes, key, self.num_episodes,
-                               self.collect_transitions)
+        ev = evaluate_episodes(
+            self.env,
+            self.network.apply,
+            genotypes,
+            key,
+            self.num_episodes,
+            self.collect_transitions,
+        )
         scores = low_spread_scores(self.centroids, ev.fitness, ev.descriptor)
         archive, _ = insert_low_spread(archive, genotypes, scores)
         return archive, ev
 
     def metrics(self, state):
         filled = state.repertoire.repertoire.filled
-        mean_spread = jnp.sum(jnp.where(filled, state.repertoire.spreads, 0.0)) / jnp.maximum(jnp.sum(filled), 1)
+        mean_spread = jnp.sum(jnp.where(filled, state.repertoire.spreads, 0.0)) / jnp.maximum(
+            jnp.sum(filled), 1
+        )
         return {**super().metrics(state), "mean_spread": mean_spread}
-
-
-@struct.dataclass
-class PGAState:
-    repertoire: Any
-    td3: TD3State
-    buffer: ReplayBuffer
-    key: jax.Array
-    offspring: Any = None  # the batch the next step evaluates
-
-
-@dataclass(frozen=True, eq=False)
-class PGAMapElites(MapElites):
-    """PGA-MAP-Elites (Algorithm 5; Nilsson and Cully, 2021).
-
-    Each iteration: ``batch_size`` parents are drawn from the repertoire; half
-    take ``num_pg_steps`` TD3 actor steps against the shared critic, the others
-    iso+line variation, and the greedy TD3 actor completes the batch; the critic
-    (with the greedy actor, as TD3) trains for ``num_critic_steps`` steps on the
-    replay buffer; every offspring is evaluated, its transitions stored, and
-    inserted by the archive's rule.  The greedy actor is offered for insertion
-    like any offspring, as in the QDax implementation the thesis ran.
-    """
-
-    td3_config: TD3Config = TD3Config()
-    num_critic_steps: int = 300
-    num_pg_steps: int = 100
-    pg_proportion: float = 0.5
-    buffer_size: int = 1_000_000
-    collect_transitions: bool = True
-
-    @property
-    def td3(self) -> TD3:
-        return TD3(self.network, self.env.observation_size, self.env.action_size, self.td3_config)
-
-    @property
-    def num_pg(self) -> int:
-        return int(self.batch_size * self.pg_proportion)
-
-    def start(self, key: jax.Array) -> PGAState:
-        k_init, k_td3, key = jax.random.split(key, 3)
-        params = self.random_policies(k_init)
-        buffer = ReplayBuffer.create(self.buffer_size, self.env.observation_size, self.env.action_size)
-        return PGAState(self.empty_archive(params), self.td3.init(k_td3), buffer, key, params)
-
-    def emit(self, state: PGAState, key: jax.Array) -> Any:
-        """Half of the batch from ``num_pg_steps`` actor steps against the critic,
-        the rest iso+line, and the greedy actor."""
-        k_sel, k_pg, k_vary = jax.random.split(key, 3)
-        td3 = self.td3
-        parents = rep_lib.sample(self.elites(state.repertoire), k_sel, self.batch_size)
-        pg_parents = take(parents, jnp.arange(self.num_pg))
-        pg_offspring = jax.vmap(
-            lambda actor, k: td3.policy_gradient_steps(actor, state.td3.critic, state.buffer, k, self.num_pg_steps)
-        )(pg_parents, jax.random.split(k_pg, self.num_pg))
-        ga_offspring = take(self.vary(parents, k_vary), jnp.arange(self.batch_size - self.num_pg - 1))
-        greedy = jax.tree.map(lambda x: x[None], state.td3.actor)
-        return concat(concat(pg_offspring, ga_offspring), greedy)
-
-    def step(self, state: PGAState) -> tuple[PGAState, Evaluation]:
-        """Evaluate and insert the waiting batch, store its transitions, train the
-        critic on the buffer, then emit the next batch with that critic (QDax's
-        order: the initial batch's transitions train the critic before the first
-        policy-gradient offspring)."""
-        key, k_eval, k_critic, k_emit = jax.random.split(state.key, 4)
-        archive, ev = self.evaluate_and_insert(state.repertoire, state.offspring, k_eval)
-        buffer = state.buffer.add_episodes(ev.trajectory, ev.fitness.ndim)
-        td3_state, _ = self.td3.train_critic(state.td3, buffer, k_critic, self.num_critic_steps)
-        state = PGAState(archive, td3_state, buffer, key)
-        return state.replace(offspring=self.emit(state, k_emit)), ev
-
-
-@dataclass(frozen=True, eq=False)
-class PGAMapElitesLowSpread(PGAMapElites, MapElitesLowSpread):
-    """PGA-MAP-Elites Low-Spread (Algorithm 7): PGA-ME's variation and critic,
-    Low-Spread's ``num_episodes`` evaluations and insertion rule; every
-    transition of every episode goes to the replay buffer."""
 
 
 def run_seeds(
@@ -354,9 +253,6 @@ def run_seeds(
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
     initial batch.
     """
-    from qdnb.loops import scan_in_chunks
-    from qdnb.qd.metrics import ExplorationTrack
-
     env = algorithm.env
     low, high = env.descriptor_low, env.descriptor_high
 
@@ -375,12 +271,19 @@ def run_seeds(
         track, out = record(state, track, ev)
         return (state, track), out
 
-    new_track = lambda: None if track_bins is None else ExplorationTrack.create(math.prod(track_bins))
+    new_track = lambda: (
+        None if track_bins is None else ExplorationTrack.create(math.prod(track_bins))
+    )
     if getattr(algorithm, "start", None) is not None:
         # the initial evaluation is the first step: one compiled program for the whole loop
         carry = jax.jit(jax.vmap(lambda k: (algorithm.start(k), new_track())))(keys)
         (states, tracks), history = scan_in_chunks(
-            jax.vmap(step), carry, num_iterations + 1, chunk_size, desc=desc, progress=progress,
+            jax.vmap(step),
+            carry,
+            num_iterations + 1,
+            chunk_size,
+            desc=desc,
+            progress=progress,
             chunk_seconds=chunk_seconds,
         )
         return states, tracks, jax.tree.map(lambda h: jnp.swapaxes(h, 0, 1), history)
@@ -392,7 +295,12 @@ def run_seeds(
 
     carry, first = jax.jit(jax.vmap(init))(keys)
     (states, tracks), history = scan_in_chunks(
-        jax.vmap(step), carry, num_iterations, chunk_size, desc=desc, progress=progress,
+        jax.vmap(step),
+        carry,
+        num_iterations,
+        chunk_size,
+        desc=desc,
+        progress=progress,
         chunk_seconds=chunk_seconds,
     )
     history = jax.tree.map(

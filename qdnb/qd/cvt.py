@@ -21,9 +21,7 @@ def grid_centroids(bins: Sequence[int], low: Sequence[float], high: Sequence[flo
     """
     if len(bins) != len(low) or len(low) != len(high):
         raise ValueError("bins, low and high must have the same length")
-    axes = [
-        lo + (jnp.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(bins, low, high)
-    ]
+    axes = [lo + (jnp.arange(b) + 0.5) * (hi - lo) / b for b, lo, hi in zip(bins, low, high)]
     mesh = jnp.meshgrid(*axes, indexing="ij")
     return jnp.stack([m.reshape(-1) for m in mesh], axis=-1)
 

@@ -62,7 +62,9 @@ class LowSpreadScores:
     spread: jax.Array  # (B,) Eq. 4.1
 
 
-def low_spread_scores(centroids: jax.Array, fitnesses: jax.Array, descriptors: jax.Array) -> LowSpreadScores:
+def low_spread_scores(
+    centroids: jax.Array, fitnesses: jax.Array, descriptors: jax.Array
+) -> LowSpreadScores:
     """Score candidates from their ``(B, E)`` episode returns and ``(B, E, d)``
     episode descriptors.
 
@@ -94,8 +96,9 @@ class LowSpreadRepertoire:
         return cls(repertoire, jnp.full(repertoire.fitnesses.shape, jnp.inf))
 
 
-def insert_low_spread(lsr: LowSpreadRepertoire, genotypes: Any, scores: LowSpreadScores
-                      ) -> tuple[LowSpreadRepertoire, jax.Array]:
+def insert_low_spread(
+    lsr: LowSpreadRepertoire, genotypes: Any, scores: LowSpreadScores
+) -> tuple[LowSpreadRepertoire, jax.Array]:
     """Algorithm 6's insertion, for a batch.
 
     A candidate is *eligible* when its cell is empty or when it has a strictly
@@ -112,14 +115,19 @@ def insert_low_spread(lsr: LowSpreadRepertoire, genotypes: Any, scores: LowSprea
     eligible = jnp.isfinite(scores.fitness) & (
         empty | ((scores.fitness > incumbent_fit) & (scores.spread < incumbent_spread))
     )
-    inserted = eligible & batch_winners(scores.cell, jnp.where(eligible, scores.fitness, -jnp.inf), rep.num_cells)
+    inserted = eligible & batch_winners(
+        scores.cell, jnp.where(eligible, scores.fitness, -jnp.inf), rep.num_cells
+    )
     new_rep = write_cells(rep, inserted, scores.cell, genotypes, scores.fitness, scores.descriptor)
     target = jnp.where(inserted, scores.cell, rep.num_cells)
-    return LowSpreadRepertoire(new_rep, lsr.spreads.at[target].set(scores.spread, mode="drop")), inserted
+    return LowSpreadRepertoire(
+        new_rep, lsr.spreads.at[target].set(scores.spread, mode="drop")
+    ), inserted
 
 
-def reassess(repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any], key: jax.Array
-             ) -> tuple[Repertoire, LowSpreadScores]:
+def reassess(
+    repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any], key: jax.Array
+) -> tuple[Repertoire, LowSpreadScores]:
     """The reassessment of Table 4.5: play every stored solution again over fresh
     episodes and insert it into an empty repertoire of the same cells.
 
@@ -134,7 +142,9 @@ def reassess(repertoire: Repertoire, evaluate_fn: Callable[[Any, jax.Array], Any
     ev = evaluate_fn(repertoire.genotypes, key)
     scores = low_spread_scores(repertoire.centroids, ev.fitness, ev.descriptor)
     fitness = jnp.where(repertoire.filled, scores.fitness, -jnp.inf)
-    empty = init_repertoire(repertoire.centroids, jax.tree.map(lambda x: x[0], repertoire.genotypes))
+    empty = init_repertoire(
+        repertoire.centroids, jax.tree.map(lambda x: x[0], repertoire.genotypes)
+    )
     return insert(empty, repertoire.genotypes, fitness, scores.descriptor)[0], scores
 
 
@@ -147,8 +157,12 @@ class Accuracy:
     chosen: jax.Array  # (G,) repertoire cell whose policy was played
 
 
-def accuracy(repertoire: Repertoire, goals: jax.Array, evaluate_fn: Callable[[Any, jax.Array], Any],
-             key: jax.Array) -> Accuracy:
+def accuracy(
+    repertoire: Repertoire,
+    goals: jax.Array,
+    evaluate_fn: Callable[[Any, jax.Array], Any],
+    key: jax.Array,
+) -> Accuracy:
     """For each goal descriptor, play the repertoire policy whose stored
     descriptor is nearest to the goal (``evaluate_fn(genotypes, key)`` returns
     ``(G, E)`` fitnesses and ``(G, E, d)`` descriptors) and measure how far its

@@ -23,7 +23,9 @@ def qd_metrics(repertoire: Repertoire, fitness_offset: float) -> dict[str, jax.A
     }
 
 
-def grid_cell(points: jax.Array, bins: Sequence[int], low: Sequence[float], high: Sequence[float]) -> jax.Array:
+def grid_cell(
+    points: jax.Array, bins: Sequence[int], low: Sequence[float], high: Sequence[float]
+) -> jax.Array:
     """Flat index of the regular-grid cell of each point (points on the upper edge
     go to the last cell)."""
     low_a, high_a = jnp.asarray(low), jnp.asarray(high)

@@ -128,7 +128,9 @@ class NoveltyArchive:
         scores = jax.lax.map(lambda q: knn_novelty(q, self.data, k, self.valid), padded)
         return scores.reshape(-1)[:n].reshape(lead)
 
-    def add(self, items: jax.Array, threshold: float, k: int, valid: jax.Array | None = None) -> "NoveltyArchive":
+    def add(
+        self, items: jax.Array, threshold: float, k: int, valid: jax.Array | None = None
+    ) -> "NoveltyArchive":
         """Insert items one after the other; an item enters when its novelty with
         respect to the archive as it stands (earlier items of the batch included)
         is strictly above ``threshold``, and, when full, replaces the oldest

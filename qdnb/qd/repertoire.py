@@ -37,7 +37,9 @@ def init_repertoire(centroids: jax.Array, genotype_example: Any) -> Repertoire:
     """An empty repertoire whose genotypes have the structure of ``genotype_example``
     (one genotype, without batch axis)."""
     n = centroids.shape[0]
-    genotypes = jax.tree.map(lambda x: jnp.zeros((n,) + jnp.shape(x), jnp.asarray(x).dtype), genotype_example)
+    genotypes = jax.tree.map(
+        lambda x: jnp.zeros((n,) + jnp.shape(x), jnp.asarray(x).dtype), genotype_example
+    )
     return Repertoire(
         genotypes=genotypes,
         fitnesses=jnp.full((n,), -jnp.inf),
@@ -57,12 +59,20 @@ def batch_winners(cells: jax.Array, fitnesses: jax.Array, num_cells: int) -> jax
     best = jax.ops.segment_max(fit, cells, num_segments=num_cells)
     is_best = valid & (fit == best[cells])
     index = jnp.arange(fitnesses.shape[0])
-    first = jax.ops.segment_min(jnp.where(is_best, index, fitnesses.shape[0]), cells, num_segments=num_cells)
+    first = jax.ops.segment_min(
+        jnp.where(is_best, index, fitnesses.shape[0]), cells, num_segments=num_cells
+    )
     return is_best & (index == first[cells])
 
 
-def write_cells(repertoire: Repertoire, mask: jax.Array, cells: jax.Array, genotypes: Any,
-                fitnesses: jax.Array, descriptors: jax.Array) -> Repertoire:
+def write_cells(
+    repertoire: Repertoire,
+    mask: jax.Array,
+    cells: jax.Array,
+    genotypes: Any,
+    fitnesses: jax.Array,
+    descriptors: jax.Array,
+) -> Repertoire:
     """Write the masked candidates into their cells (at most one per cell)."""
     target = jnp.where(mask, cells, repertoire.num_cells)  # out of range: dropped
     put = lambda old, new: old.at[target].set(new, mode="drop")
@@ -73,8 +83,9 @@ def write_cells(repertoire: Repertoire, mask: jax.Array, cells: jax.Array, genot
     )
 
 
-def insert(repertoire: Repertoire, genotypes: Any, fitnesses: jax.Array, descriptors: jax.Array
-           ) -> tuple[Repertoire, jax.Array]:
+def insert(
+    repertoire: Repertoire, genotypes: Any, fitnesses: jax.Array, descriptors: jax.Array
+) -> tuple[Repertoire, jax.Array]:
     """Batch insertion of MAP-Elites.
 
     Each cell keeps the best of its incumbent and of every candidate of the

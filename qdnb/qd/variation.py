@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 
 
 def _leaf_keys(key: jax.Array, tree: Any) -> Any:
@@ -16,7 +15,9 @@ def _leaf_keys(key: jax.Array, tree: Any) -> Any:
 def gaussian_mutation(genotypes: Any, key: jax.Array, sigma: float) -> Any:
     """x' = x + sigma * N(0, I)."""
     keys = _leaf_keys(key, genotypes)
-    return jax.tree.map(lambda x, k: x + sigma * jax.random.normal(k, x.shape, x.dtype), genotypes, keys)
+    return jax.tree.map(
+        lambda x, k: x + sigma * jax.random.normal(k, x.shape, x.dtype), genotypes, keys
+    )
 
 
 def isoline_variation(x1: Any, x2: Any, key: jax.Array, iso_sigma: float, line_sigma: float) -> Any:

@@ -28,16 +28,27 @@ class ReplayBuffer:
     fields: tuple = struct.field(pytree_node=False, default=())
 
     @classmethod
-    def create(cls, capacity: int, observation_size: int, action_size: int,
-               descriptor_size: int = 0) -> "ReplayBuffer":
+    def create(
+        cls, capacity: int, observation_size: int, action_size: int, descriptor_size: int = 0
+    ) -> "ReplayBuffer":
         """An empty buffer; with ``descriptor_size`` it also stores each
         transition's ``state_descriptor`` (QD-PG's novelty rewards, Eq. 3.5)."""
-        fields = [("obs", (observation_size,)), ("action", (action_size,)), ("reward", ()),
-                  ("next_obs", (observation_size,)), ("terminal", ())]
+        fields = [
+            ("obs", (observation_size,)),
+            ("action", (action_size,)),
+            ("reward", ()),
+            ("next_obs", (observation_size,)),
+            ("terminal", ()),
+        ]
         if descriptor_size:
             fields.append(("state_descriptor", (descriptor_size,)))
         width = sum(math.prod(shape) for _, shape in fields)
-        return cls(jnp.zeros((capacity, width)), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), tuple(fields))
+        return cls(
+            jnp.zeros((capacity, width)),
+            jnp.zeros((), jnp.int32),
+            jnp.zeros((), jnp.int32),
+            tuple(fields),
+        )
 
     @property
     def capacity(self) -> int:
@@ -47,7 +58,7 @@ class ReplayBuffer:
         out, start = {}, 0
         for name, shape in self.fields:
             width = math.prod(shape)
-            out[name] = rows[..., start:start + width].reshape(rows.shape[:-1] + shape)
+            out[name] = rows[..., start : start + width].reshape(rows.shape[:-1] + shape)
             start += width
         return out
 
@@ -65,20 +76,33 @@ class ReplayBuffer:
             raise ValueError(f"cannot add {n} transitions to a buffer of capacity {self.capacity}")
         valid = jnp.ones((n,), bool) if valid is None else valid
         offset = jnp.cumsum(valid) - 1
-        target = jnp.where(valid, (self.position + offset) % self.capacity, self.capacity)  # out of range: dropped
-        rows = jnp.concatenate([transitions[name].reshape(n, -1).astype(self.storage.dtype)
-                                for name, _ in self.fields], axis=1)
+        target = jnp.where(
+            valid, (self.position + offset) % self.capacity, self.capacity
+        )  # out of range: dropped
+        rows = jnp.concatenate(
+            [
+                transitions[name].reshape(n, -1).astype(self.storage.dtype)
+                for name, _ in self.fields
+            ],
+            axis=1,
+        )
         storage = self.storage.at[target].set(rows, mode="drop")
         count = jnp.sum(valid).astype(jnp.int32)
-        return self.replace(storage=storage, position=(self.position + count) % self.capacity,
-                            size=jnp.minimum(self.size + count, self.capacity))
+        return self.replace(
+            storage=storage,
+            position=(self.position + count) % self.capacity,
+            size=jnp.minimum(self.size + count, self.capacity),
+        )
 
     def add_episodes(self, trajectory: dict, batch_ndim: int) -> "ReplayBuffer":
         """Every valid step of a batch of episodes (``trajectory`` as returned by
         the rollouts: ``batch_ndim`` leading batch axes, then time), with the
         keys this buffer holds."""
-        flat = lambda x: x.reshape((-1,) + x.shape[batch_ndim + 1:]).astype(jnp.float32)
-        return self.add({name: flat(trajectory[name]) for name, _ in self.fields}, trajectory["valid"].reshape(-1))
+        flat = lambda x: x.reshape((-1,) + x.shape[batch_ndim + 1 :]).astype(jnp.float32)
+        return self.add(
+            {name: flat(trajectory[name]) for name, _ in self.fields},
+            trajectory["valid"].reshape(-1),
+        )
 
     def sample(self, key: jax.Array, batch_size: int) -> dict:
         """``batch_size`` transitions drawn uniformly, with replacement, among the stored ones."""

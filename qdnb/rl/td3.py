@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from qdnb.rl.networks import MLP
+from qdnb.nets.mlp import MLP
 
 
 @dataclass(frozen=True)
@@ -44,8 +44,10 @@ class TD3Config:
         if self.optimizer not in ("adam", "sgd"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}; valid: adam, sgd")
         if self.policy_delay < 1 or self.target_update_interval < 1:
-            raise ValueError(f"policy_delay and target_update_interval must be >= 1, got "
-                             f"{self.policy_delay} and {self.target_update_interval}")
+            raise ValueError(
+                f"policy_delay and target_update_interval must be >= 1, got "
+                f"{self.policy_delay} and {self.target_update_interval}"
+            )
 
 
 class TwinCritic(nn.Module):
@@ -61,8 +63,9 @@ class TwinCritic(nn.Module):
         return q1[..., 0], q2[..., 0]
 
 
-def td3_target(reward: jax.Array, terminal: jax.Array, next_q1: jax.Array, next_q2: jax.Array,
-               gamma: float) -> jax.Array:
+def td3_target(
+    reward: jax.Array, terminal: jax.Array, next_q1: jax.Array, next_q2: jax.Array, gamma: float
+) -> jax.Array:
     """y = r + gamma * (1 - terminal) * min(Q1', Q2') (clipped double Q-learning)."""
     return reward + gamma * (1.0 - terminal) * jnp.minimum(next_q1, next_q2)
 
@@ -110,16 +113,31 @@ class TD3:
     def init(self, key: jax.Array) -> TD3State:
         k_a, k_c = jax.random.split(key)
         actor = self.actor.init(k_a, jnp.zeros((self.observation_size,)))
-        critic = self.critic.init(k_c, jnp.zeros((self.observation_size,)), jnp.zeros((self.action_size,)))
-        return TD3State(actor, actor, critic, critic, self.actor_optimizer.init(actor),
-                        self.critic_optimizer.init(critic), jnp.zeros((), jnp.int32))
+        critic = self.critic.init(
+            k_c, jnp.zeros((self.observation_size,)), jnp.zeros((self.action_size,))
+        )
+        return TD3State(
+            actor,
+            actor,
+            critic,
+            critic,
+            self.actor_optimizer.init(actor),
+            self.critic_optimizer.init(critic),
+            jnp.zeros((), jnp.int32),
+        )
 
-    def target(self, critic_target: Any, actor_target: Any, batch: dict, key: jax.Array) -> jax.Array:
+    def target(
+        self, critic_target: Any, actor_target: Any, batch: dict, key: jax.Array
+    ) -> jax.Array:
         """TD3 target with target-policy smoothing: clipped Gaussian noise on the
         target actor's action."""
         cfg = self.config
         next_action = self.actor.apply(actor_target, batch["next_obs"])
-        noise = jnp.clip(cfg.policy_noise * jax.random.normal(key, next_action.shape), -cfg.noise_clip, cfg.noise_clip)
+        noise = jnp.clip(
+            cfg.policy_noise * jax.random.normal(key, next_action.shape),
+            -cfg.noise_clip,
+            cfg.noise_clip,
+        )
         next_action = jnp.clip(next_action + noise, -1.0, 1.0)
         q1, q2 = self.critic.apply(critic_target, batch["next_obs"], next_action)
         return td3_target(batch["reward"], batch["terminal"], q1, q2, cfg.gamma)
@@ -133,7 +151,9 @@ class TD3:
         q1, _ = self.critic.apply(critic, obs, self.actor.apply(actor, obs))
         return -jnp.mean(q1)
 
-    def critic_step(self, state: TD3State, batch: dict, key: jax.Array) -> tuple[TD3State, jax.Array]:
+    def critic_step(
+        self, state: TD3State, batch: dict, key: jax.Array
+    ) -> tuple[TD3State, jax.Array]:
         """One critic update, then a soft update (rate ``tau``) of the target
         critic when the step count is a multiple of ``target_update_interval``."""
         cfg = self.config
@@ -143,9 +163,14 @@ class TD3:
         critic = optax.apply_updates(state.critic, updates)
         steps = state.steps + 1
         move = steps % cfg.target_update_interval == 0
-        target = jax.tree.map(lambda t, p: jnp.where(move, (1 - cfg.tau) * t + cfg.tau * p, t),
-                              state.critic_target, critic)
-        return state.replace(critic=critic, critic_opt=critic_opt, critic_target=target, steps=steps), loss
+        target = jax.tree.map(
+            lambda t, p: jnp.where(move, (1 - cfg.tau) * t + cfg.tau * p, t),
+            state.critic_target,
+            critic,
+        )
+        return state.replace(
+            critic=critic, critic_opt=critic_opt, critic_target=target, steps=steps
+        ), loss
 
     def actor_step(self, state: TD3State, obs: jax.Array) -> TD3State:
         """One step of the greedy actor against the current critic, then a soft
@@ -157,7 +182,9 @@ class TD3:
         target = jax.tree.map(lambda t, p: (1 - tau) * t + tau * p, state.actor_target, actor)
         return state.replace(actor=actor, actor_opt=actor_opt, actor_target=target)
 
-    def policy_gradient_steps(self, actor: Any, critic: Any, buffer, key: jax.Array, num_steps: int) -> Any:
+    def policy_gradient_steps(
+        self, actor: Any, critic: Any, buffer, key: jax.Array, num_steps: int
+    ) -> Any:
         """Improve one actor with ``num_steps`` steps of the mutation optimiser
         (fresh state, rate ``mutation_lr``), each on its own replay batch, against
         a fixed critic: the policy-gradient variation of PGA-ME and QD-PG."""
@@ -170,11 +197,19 @@ class TD3:
             updates, opt_state = opt.update(grads, opt_state)
             return (optax.apply_updates(params, updates), opt_state), None
 
-        (actor, _), _ = jax.lax.scan(one, (actor, opt.init(actor)), jax.random.split(key, num_steps))
+        (actor, _), _ = jax.lax.scan(
+            one, (actor, opt.init(actor)), jax.random.split(key, num_steps)
+        )
         return actor
 
-    def train_critic(self, state: TD3State, buffer, key: jax.Array, num_steps: int,
-                     reward_fn: Callable[[dict], jax.Array] | None = None) -> tuple[TD3State, jax.Array]:
+    def train_critic(
+        self,
+        state: TD3State,
+        buffer,
+        key: jax.Array,
+        num_steps: int,
+        reward_fn: Callable[[dict], jax.Array] | None = None,
+    ) -> tuple[TD3State, jax.Array]:
         """``num_steps`` critic steps on replay batches, with one greedy-actor step
         after every ``policy_delay`` of them (on the last of their batches);
         returns the mean critic loss.
@@ -191,11 +226,15 @@ class TD3:
             raise ValueError(f"num_steps={num_steps} must be a multiple of policy_delay={delay}")
         k_batch, k_noise = jax.random.split(key)
         batches = buffer.sample(k_batch, num_steps * self.config.batch_size)
-        batches = jax.tree.map(lambda x: x.reshape((num_steps, self.config.batch_size) + x.shape[1:]), batches)
+        batches = jax.tree.map(
+            lambda x: x.reshape((num_steps, self.config.batch_size) + x.shape[1:]), batches
+        )
         if reward_fn is not None:
             batches = {**batches, "reward": reward_fn(batches)}
-        blocks = jax.tree.map(lambda x: x.reshape((num_steps // delay, delay) + x.shape[1:]),
-                              (batches, jax.random.split(k_noise, num_steps)))
+        blocks = jax.tree.map(
+            lambda x: x.reshape((num_steps // delay, delay) + x.shape[1:]),
+            (batches, jax.random.split(k_noise, num_steps)),
+        )
 
         def block(s, inputs):
             s, losses = jax.lax.scan(lambda s, bk: self.critic_step(s, *bk), s, inputs)

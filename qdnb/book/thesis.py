@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from qdnb import paths
+from qdnb.core import paths
 
 TABLES = {
     "3.3": ("table_3_3.csv", "Comparison to evolutionary competitors on Ant-Maze"),

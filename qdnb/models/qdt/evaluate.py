@@ -17,20 +17,30 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from qdnb.core.evaluation import Evaluation
 from qdnb.envs.base import Env
-from qdnb.envs.rollout import Evaluation, tally_evaluation, tally_start, tally_step
+from qdnb.envs.rollout import tally_evaluation, tally_start, tally_step
+from qdnb.models.qdt.model import QDT
 from qdnb.qd.low_spread import spread
-from qdnb.qdt.model import QDT
 
 
-def play(env: Env, model: QDT, params: Any, goals: jax.Array, key: jax.Array, num_episodes: int,
-         cached: bool = True) -> Evaluation:
+def play(
+    env: Env,
+    model: QDT,
+    params: Any,
+    goals: jax.Array,
+    key: jax.Array,
+    num_episodes: int,
+    cached: bool = True,
+) -> Evaluation:
     """Condition the QDT on each goal ``(G, d)`` for ``num_episodes`` episodes from
     different initial states; leaves of the result have shape ``(G, E, ...)``
     (``trajectory`` holds the actions played, ``(G, E, T, A)``).  The fitness is
     read as ``evaluate_policies`` reads it (``env.fitness_mode``)."""
     if model.max_steps < env.episode_length:
-        raise ValueError(f"the QDT knows {model.max_steps} timesteps, the episodes last {env.episode_length}")
+        raise ValueError(
+            f"the QDT knows {model.max_steps} timesteps, the episodes last {env.episode_length}"
+        )
     g = goals.shape[0]
     n = g * num_episodes
     bd = jnp.repeat(goals, num_episodes, axis=0)
@@ -47,7 +57,10 @@ def play(env: Env, model: QDT, params: Any, goals: jax.Array, key: jax.Array, nu
         def next_action(t, prev_action, obs, memory):
             return model.apply(params, bd, prev_action, obs, t, memory, method=QDT.decode_step)
     else:  # the whole trajectory so far, padded to full length (causality hides the padding)
-        memory = (jnp.zeros((n, horizon, env.observation_size)), jnp.zeros((n, horizon, env.action_size)))
+        memory = (
+            jnp.zeros((n, horizon, env.observation_size)),
+            jnp.zeros((n, horizon, env.action_size)),
+        )
 
         def full(t, obs, memory):
             obs_buf, act_buf = memory
@@ -72,15 +85,22 @@ def play(env: Env, model: QDT, params: Any, goals: jax.Array, key: jax.Array, nu
         action, memory = next_action(t, prev_action, states.obs, memory)
         return (*advance(states, tallies, action), action, memory), action
 
-    (_, tallies, _, _), actions = jax.lax.scan(body, (states, tallies, action0, memory), jnp.arange(1, horizon))
+    (_, tallies, _, _), actions = jax.lax.scan(
+        body, (states, tallies, action0, memory), jnp.arange(1, horizon)
+    )
     actions = jnp.concatenate([action0[None], actions]).swapaxes(0, 1)
-    return jax.tree.map(lambda x: x.reshape((g, num_episodes) + x.shape[1:]),
-                        tally_evaluation(env, tallies, actions))
+    return jax.tree.map(
+        lambda x: x.reshape((g, num_episodes) + x.shape[1:]),
+        tally_evaluation(env, tallies, actions),
+    )
 
 
 def goal_scores(goals: jax.Array, ev: Evaluation) -> dict[str, np.ndarray]:
     """Per goal: mean distance between the goal and the achieved descriptors
     (Section 4.5.2), spread of the achieved descriptors (Eq. 4.1) and mean fitness."""
     distance = jnp.mean(jnp.linalg.norm(ev.descriptor - goals[:, None, :], axis=-1), axis=1)
-    return {"distance": np.asarray(distance), "spread": np.asarray(jax.vmap(spread)(ev.descriptor)),
-            "fitness": np.asarray(jnp.mean(ev.fitness, axis=1))}
+    return {
+        "distance": np.asarray(distance),
+        "spread": np.asarray(jax.vmap(spread)(ev.descriptor)),
+        "fitness": np.asarray(jnp.mean(ev.fitness, axis=1)),
+    }

@@ -4,7 +4,7 @@ a Flow Lenia episode, with CNN embeddings in and out.
 An episode is the sequence of frames ``x_t = (A^t, P^t)`` stacked along channels
 (``(H, W, 1 + |K|)``, ``flow_lenia.frames``).  Each frame is encoded by a CNN into
 one token; the learned embedding of timestep ``t`` is added and a causal
-transformer (the QDT's pre-norm GPT-2 blocks, ``qdnb.qdt.model.Block``) runs over
+transformer (the QDT's pre-norm GPT-2 blocks, ``qdnb.nets.transformer.Block``) runs over
 the tokens; a CNN decoder turns the hidden state at token ``t`` into the
 prediction of frame ``t + 1``: ``A`` through a softplus (matter is non-negative and
 may exceed 1) and ``P`` through a sigmoid (kernel weights live in ``[0, 1]``).
@@ -31,12 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import linen as nn
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
-from qdnb.lenia import flow_lenia as fl
-from qdnb.qdt.model import Block, run_blocks
-
-Cache = tuple[tuple[jax.Array, jax.Array], ...]
+from qdnb.models.lenia import flow_lenia as fl
+from qdnb.nets.transformer import Block, Cache, make_optimizer, run_blocks
 
 
 class FrameEncoder(nn.Module):
@@ -103,9 +101,14 @@ class FLT(nn.Module):
     def setup(self):
         scale = 2 ** len(self.features)
         if self.height % scale or self.width % scale:
-            raise ValueError(f"the {self.height}x{self.width} grid is not a multiple of 2**len(features) = {scale}")
+            raise ValueError(
+                f"the {self.height}x{self.width} grid is not a multiple of 2**len(features) = "
+                f"{scale}"
+            )
         if self.embed_dim % self.num_heads:
-            raise ValueError(f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}")
+            raise ValueError(
+                f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}"
+            )
         self.encoder = FrameEncoder(self.features, self.embed_dim, self.padding)
         self.decoder = FrameDecoder(self.features, self.height, self.width, self.channels)
         self.embed_timestep = nn.Embed(self.max_steps, self.embed_dim)
@@ -114,7 +117,9 @@ class FLT(nn.Module):
         self.blocks = [Block(self.num_heads, self.dropout) for _ in range(self.num_layers)]
         self.ln_final = nn.LayerNorm()
 
-    def tokens(self, inputs: jax.Array, timesteps: jax.Array) -> tuple[jax.Array, list[jax.Array] | None]:
+    def tokens(
+        self, inputs: jax.Array, timesteps: jax.Array
+    ) -> tuple[jax.Array, list[jax.Array] | None]:
         """Tokens ``(B, T, D)`` of the frames ``(B, T, H, W, C)``, and their feature maps
         (flattened to ``B T``) when the decoder uses skips."""
         b, t = inputs.shape[:2]
@@ -123,7 +128,9 @@ class FLT(nn.Module):
         return tokens, (maps if self.skip else None)
 
     def transformer(self, x, caches, start, deterministic):
-        x, caches = run_blocks(self.blocks, self.drop(x, deterministic=deterministic), caches, start, deterministic)
+        x, caches = run_blocks(
+            self.blocks, self.drop(x, deterministic=deterministic), caches, start, deterministic
+        )
         return self.ln_final(x), caches
 
     def decode(self, hidden: jax.Array, maps: list[jax.Array] | None) -> jax.Array:
@@ -138,7 +145,9 @@ class FLT(nn.Module):
 
     def init_cache(self, batch: int, dtype=jnp.float32) -> Cache:
         shape = (batch, self.max_steps, self.num_heads, self.embed_dim // self.num_heads)
-        return tuple((jnp.zeros(shape, dtype), jnp.zeros(shape, dtype)) for _ in range(self.num_layers))
+        return tuple(
+            (jnp.zeros(shape, dtype), jnp.zeros(shape, dtype)) for _ in range(self.num_layers)
+        )
 
     def decode_step(self, frame: jax.Array, t: jax.Array, cache: Cache) -> tuple[jax.Array, Cache]:
         """Feed frame ``x_t`` ``(B, H, W, C)`` (token ``t``) and predict ``x_{t+1}``."""
@@ -172,26 +181,47 @@ class FLTConfig:
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.embed_dim % self.num_heads:
-            raise ValueError(f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}")
+            raise ValueError(
+                f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}"
+            )
         if not self.features or min(self.features) < 1:
-            raise ValueError(f"features must be a non-empty tuple of positive widths, got {self.features}")
+            raise ValueError(
+                f"features must be a non-empty tuple of positive widths, got {self.features}"
+            )
         if not 0.0 <= self.dropout < 1.0 or not self.learning_rate > 0:
-            raise ValueError(f"dropout must be in [0, 1) and learning_rate positive, got "
-                             f"{self.dropout} and {self.learning_rate}")
+            raise ValueError(
+                f"dropout must be in [0, 1) and learning_rate positive, got "
+                f"{self.dropout} and {self.learning_rate}"
+            )
 
 
 def make_model(world: fl.FlowLeniaConfig, cfg: FLTConfig) -> FLT:
-    return FLT(world.height, world.width, world.channels + world.kernels, world.steps, cfg.embed_dim,
-               cfg.num_layers, cfg.num_heads, cfg.features, cfg.dropout, cfg.skip,
-               "CIRCULAR" if world.border == "torus" else "SAME")
+    return FLT(
+        world.height,
+        world.width,
+        world.channels + world.kernels,
+        world.steps,
+        cfg.embed_dim,
+        cfg.num_layers,
+        cfg.num_heads,
+        cfg.features,
+        cfg.dropout,
+        cfg.skip,
+        "CIRCULAR" if world.border == "torus" else "SAME",
+    )
 
 
 def init_params(model: FLT, key: jax.Array) -> Any:
     return model.init(key, jnp.zeros((1, 2, model.height, model.width, model.channels)))
 
 
-def loss_fn(model: FLT, params: Any, episodes: jax.Array, key: jax.Array | None = None,
-            per_modality: bool = False) -> jax.Array:
+def loss_fn(
+    model: FLT,
+    params: Any,
+    episodes: jax.Array,
+    key: jax.Array | None = None,
+    per_modality: bool = False,
+) -> jax.Array:
     """Eq. 5.3 with teacher forcing: frames ``x_0 .. x_{T-1}`` in, ``x_1 .. x_T``
     predicted, the squared error averaged over episodes, timesteps, cells and
     channels.  Eq. 5.3 sums ``||A_t - Â_t||^2 + ||P_t - P̂_t||^2`` over cells and
@@ -207,12 +237,16 @@ def loss_fn(model: FLT, params: Any, episodes: jax.Array, key: jax.Array | None 
     return jnp.mean(err)
 
 
-def make_train_step(model: FLT, optimizer: optax.GradientTransformation, per_modality: bool = False):
+def make_train_step(
+    model: FLT, optimizer: optax.GradientTransformation, per_modality: bool = False
+):
     """``(params, opt_state, episodes, key) -> (params, opt_state, loss)``, not jitted
     (it is called inside ``train``'s jitted loop and jitted by the tests)."""
 
     def step(params, opt_state, episodes, key):
-        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, episodes, key, per_modality))(params)
+        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, episodes, key, per_modality))(
+            params
+        )
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
@@ -225,6 +259,7 @@ def unroll(model: FLT, params: Any, frame0: jax.Array, cached: bool = True) -> j
     each prediction fed back as the next input: ``(B, T, H, W, C)``."""
     steps = model.max_steps
     if cached:
+
         def body(carry, t):
             frame, cache = carry
             nxt, cache = model.apply(params, frame, t, cache, method=FLT.decode_step)
@@ -232,10 +267,13 @@ def unroll(model: FLT, params: Any, frame0: jax.Array, cached: bool = True) -> j
 
         cache = model.apply(params, frame0.shape[0], method=FLT.init_cache)
         _, preds = jax.lax.scan(body, (frame0, cache), jnp.arange(steps))
-    else:  # the whole prefix every step; the not yet predicted frames are zeros, hidden by causality
+    else:
+        # the whole prefix every step; the not yet predicted frames are zeros, hidden by causality
+
         def body(inputs, t):
             nxt = model.apply(params, inputs)[:, t]
-            # write x_{t+1} at input position t + 1 (the last prediction has no position: the write is dropped)
+            # write x_{t+1} at input position t + 1 (the last prediction has no position: the write
+            # is dropped)
             inputs = inputs.at[:, t + 1].set(nxt, mode="drop")
             return inputs, nxt
 
@@ -248,8 +286,10 @@ def frame_errors(pred: jax.Array, truth: jax.Array) -> dict[str, jax.Array]:
     """Per episode and timestep: the mean squared error on activations ``A``
     (``"A"``, the quantity shown in Figures 5.3 to 5.5) and on the whole frame
     (``"frame"``: ``A`` and ``P``, the loss of Eq. 5.3)."""
-    return {"A": jnp.mean((pred[..., :1] - truth[..., :1]) ** 2, axis=(-3, -2, -1)),
-            "frame": jnp.mean((pred - truth) ** 2, axis=(-3, -2, -1))}
+    return {
+        "A": jnp.mean((pred[..., :1] - truth[..., :1]) ** 2, axis=(-3, -2, -1)),
+        "frame": jnp.mean((pred - truth) ** 2, axis=(-3, -2, -1)),
+    }
 
 
 @dataclass
@@ -261,8 +301,16 @@ class TrainResult:
     max_drift: float  # largest relative change of total mass over all training episodes
 
 
-def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.System, key: jax.Array,
-          progress: bool = True, desc: str = "FLT", max_seconds: float | None = None) -> TrainResult:
+def train(
+    model: FLT,
+    cfg: FLTConfig,
+    world: fl.FlowLeniaConfig,
+    system: fl.System,
+    key: jax.Array,
+    progress: bool = True,
+    desc: str = "FLT",
+    max_seconds: float | None = None,
+) -> TrainResult:
     """Train the FLT on episodes of ``system``, each batch simulated on the fly from
     fresh random initial states (simulation and gradient step in one jitted
     call).  Also accumulates the mean frame per timestep of the training
@@ -274,7 +322,6 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
     The steps run in a Python loop, not a ``lax.scan``: XLA on CPU runs the
     convolutions' gradients about 10x slower inside a loop than as a top-level
     computation, and a step (about half a second) dwarfs the host round-trip."""
-    from qdnb.qdt.train import make_optimizer  # the QDT's Adam with clipping (imported here: no import cycle)
 
     k_init, k_train = jax.random.split(key)
     params = init_params(model, k_init)
@@ -286,7 +333,9 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
     def one(params, opt_state, frame_sum, key):
         k_sim, k_drop = jax.random.split(key)
         episodes = fl.frames(fl.simulate_system(system, k_sim, world, cfg.batch_size))
-        params, opt_state, loss = step(params, opt_state, episodes, k_drop if cfg.dropout > 0 else None)
+        params, opt_state, loss = step(
+            params, opt_state, episodes, k_drop if cfg.dropout > 0 else None
+        )
         drift = jnp.max(fl.mass_drift(episodes[..., :1]))
         return params, opt_state, frame_sum + jnp.sum(episodes, axis=0), loss, drift
 
@@ -295,15 +344,25 @@ def train(model: FLT, cfg: FLTConfig, world: fl.FlowLeniaConfig, system: fl.Syst
     start = time.perf_counter()
     bar = tqdm(range(cfg.train_steps), desc=desc, disable=not progress, mininterval=1.0)
     for i in bar:
-        params, opt_state, frame_sum, loss, drift = one(params, opt_state, frame_sum,
-                                                        jax.random.fold_in(k_train, i))
+        params, opt_state, frame_sum, loss, drift = one(
+            params, opt_state, frame_sum, jax.random.fold_in(k_train, i)
+        )
         losses.append(loss)
         drifts.append(drift)
         if i % 50 == 49 or i == cfg.train_steps - 1:
             bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-50:]))):.4g}")
-        if max_seconds is not None and float(loss) >= 0 and time.perf_counter() - start > max_seconds:
+        if (
+            max_seconds is not None
+            and float(loss) >= 0
+            and time.perf_counter() - start > max_seconds
+        ):
             break  # float(loss) waits for the step, so the clock counts finished steps
     bar.close()
     seen = len(losses) * cfg.batch_size
-    return TrainResult(params, np.asarray(jnp.stack(losses)), np.asarray(frame_sum / seen), seen,
-                       float(jnp.max(jnp.stack(drifts))))
+    return TrainResult(
+        params,
+        np.asarray(jnp.stack(losses)),
+        np.asarray(frame_sum / seen),
+        seen,
+        float(jnp.max(jnp.stack(drifts))),
+    )

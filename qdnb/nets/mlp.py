@@ -24,7 +24,11 @@ class MLP(nn.Module):
             if i < len(self.layer_sizes) - 1:
                 x = act(x)
         if self.final_activation is not None:
-            x = jnp.tanh(x) if self.final_activation == "tanh" else getattr(nn, self.final_activation)(x)
+            x = (
+                jnp.tanh(x)
+                if self.final_activation == "tanh"
+                else getattr(nn, self.final_activation)(x)
+            )
         return x
 
 

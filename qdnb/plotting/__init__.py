@@ -8,22 +8,60 @@ from typing import Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-METHOD_COLORS = {"GA": "#7f7f7f", "NS": "#1f77b4", "ME": "#d62728"}
+# One colour per method across the book (a QDT takes the colour of the repertoire it learns from).
+METHOD_COLORS = {
+    "GA": "#7f7f7f",
+    "NS": "#17becf",  # Chapters 1-2
+    "ME": "#d62728",
+    "ME-LS": "#1f77b4",
+    "PGA-ME": "#ff7f0e",
+    "PGA-ME-LS": "#2ca02c",
+    "ME-Sampling": "#8c564b",
+    "Naive": "#7b4173",  # Chapter 4
+    "QD-PG": "#9467bd",
+    "QD-PG Sum": "#e377c2",
+    "D-PG": "#bcbd22",
+    "Q-PG": "#393b79",
+    "TD3": "#525252",  # Chapter 3
+    "flt": "#9467bd",
+    "persistence": "#7f7f7f",
+    "mean_frame": "#bcbd22",  # Chapter 5's predictors
+}
+# How a method is named in legends and tables, where it differs from its key.
+METHOD_LABELS = {
+    "flt": "FLT",
+    "persistence": "persistence",
+    "mean_frame": "mean frame",
+    "Naive": "Naive",
+}
+
+
+def method_color(name: str) -> str:
+    """The book's colour of a method (``KeyError`` names the known ones)."""
+    if name not in METHOD_COLORS:
+        raise KeyError(f"no colour for method {name!r}; known: {', '.join(METHOD_COLORS)}")
+    return METHOD_COLORS[name]
+
+
+def method_label(name: str) -> str:
+    return METHOD_LABELS.get(name, name)
 
 
 def set_style() -> None:
     """One style for every figure of the book."""
-    plt.rcParams.update({
-        "figure.dpi": 110,
-        "savefig.dpi": 150,
-        "font.size": 9,
-        "axes.titlesize": 10,
-        "axes.spines.top": False,
-        "axes.spines.right": False,
-        "axes.grid": True,
-        "grid.alpha": 0.25,
-        "legend.frameon": False,
-    })
+    plt.rcParams.update(
+        {
+            "figure.dpi": 110,
+            "savefig.dpi": 150,
+            "font.size": 9,
+            "axes.titlesize": 10,
+            "axes.spines.top": False,
+            "axes.spines.right": False,
+            "axes.grid": True,
+            "grid.alpha": 0.25,
+            "legend.frameon": False,
+        }
+    )
 
 
 def figure_title(fig: plt.Figure, text: str, scale: str) -> None:
@@ -52,12 +90,18 @@ def repertoire_map(
     pts = np.stack([gx.ravel(), gy.ravel()], axis=-1)
     cells = np.empty(len(pts), dtype=int)
     for start in range(0, len(pts), 20_000):  # bounded memory for large tessellations
-        chunk = pts[start:start + 20_000]
-        cells[start:start + 20_000] = np.argmin(((chunk[:, None, :] - centroids[None]) ** 2).sum(-1), axis=1)
+        chunk = pts[start : start + 20_000]
+        cells[start : start + 20_000] = np.argmin(
+            ((chunk[:, None, :] - centroids[None]) ** 2).sum(-1), axis=1
+        )
     image = np.where(np.isfinite(values), values, np.nan)[cells].reshape(resolution, resolution)
     finite = values[np.isfinite(values)]
     im = ax.imshow(
-        image, origin="lower", extent=(low[0], high[0], low[1], high[1]), cmap=cmap, aspect="auto",
+        image,
+        origin="lower",
+        extent=(low[0], high[0], low[1], high[1]),
+        cmap=cmap,
+        aspect="auto",
         vmin=vmin if vmin is not None else (finite.min() if finite.size else None),
         vmax=vmax if vmax is not None else (finite.max() if finite.size else None),
         interpolation="nearest",
@@ -68,7 +112,9 @@ def repertoire_map(
     return im
 
 
-def quartile_curves(ax: plt.Axes, x: np.ndarray, ys: np.ndarray, label: str, color: str | None = None) -> None:
+def quartile_curves(
+    ax: plt.Axes, x: np.ndarray, ys: np.ndarray, label: str, color: str | None = None
+) -> None:
     """Median over seeds (rows of ``ys``) with the interquartile range shaded."""
     ys = np.asarray(ys)
     q1, med, q3 = np.percentile(ys, [25, 50, 75], axis=0)
@@ -85,10 +131,31 @@ def draw_pointmaze(ax: plt.Axes) -> None:
     for x0, x1, y0, y1 in WALLS:
         ax.add_patch(Rectangle((x0, y0 - 0.01), x1 - x0, (y1 - y0) + 0.02, color="black", zorder=5))
     g = GOAL_HALF_SIDE
-    ax.add_patch(Rectangle((GOAL[0] - g, GOAL[1] - g), 2 * g, 2 * g, facecolor="none", edgecolor="limegreen",
-                           linewidth=2, zorder=6, label="goal zone"))
-    ax.add_patch(Rectangle((-0.1, -1.0), 0.2, 0.3, facecolor="none", edgecolor="orange", linestyle="--",
-                           linewidth=1.2, zorder=6, label="start zone"))
+    ax.add_patch(
+        Rectangle(
+            (GOAL[0] - g, GOAL[1] - g),
+            2 * g,
+            2 * g,
+            facecolor="none",
+            edgecolor="limegreen",
+            linewidth=2,
+            zorder=6,
+            label="goal zone",
+        )
+    )
+    ax.add_patch(
+        Rectangle(
+            (-0.1, -1.0),
+            0.2,
+            0.3,
+            facecolor="none",
+            edgecolor="orange",
+            linestyle="--",
+            linewidth=1.2,
+            zorder=6,
+            label="start zone",
+        )
+    )
     ax.set_xlim(-1, 1)
     ax.set_ylim(-1, 1)
     ax.set_aspect("equal")
@@ -107,3 +174,27 @@ def draw_capsule_walls(ax: plt.Axes, walls, radius: float = 0.5, color: str = "b
         ax.add_patch(Polygon([a + n, b + n, b - n, a - n], closed=True, color=color, zorder=5))
         for end in (a, b):
             ax.add_patch(Circle(end, radius, color=color, zorder=5))
+
+
+def panel_grid(
+    n: int, ncols: int = 3, size: tuple[float, float] = (3.4, 3.0), **kwargs
+) -> tuple[plt.Figure, list[plt.Axes]]:
+    """``n`` panels wrapped into rows of at most ``ncols``, as the thesis's figures
+    are (a row of five panels renders at thumbnail size at the page's width); the
+    unused slots of the last row are hidden.  Returns the figure and the ``n`` axes."""
+    if n < 1 or ncols < 1:
+        raise ValueError(f"n and ncols must be positive, got {n} and {ncols}")
+    cols = min(n, ncols)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(
+        rows,
+        cols,
+        figsize=(size[0] * cols, size[1] * rows),
+        squeeze=False,
+        constrained_layout=True,
+        **kwargs,
+    )
+    flat = list(axes.ravel())
+    for ax in flat[n:]:
+        ax.set_visible(False)
+    return fig, flat[:n]

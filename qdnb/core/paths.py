@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOKS = ROOT / "notebooks"
 BOOK = ROOT / "book"
 DATA = ROOT / "data"
 THESIS_DATA = DATA / "thesis"
-RUNS = DATA / "runs"
+RUNS = Path(
+    os.environ.get("QDNB_RUNS", DATA / "runs")
+)  # QDNB_RUNS: elsewhere (the tests' nbmake run)
 
 
 def run_dir(scale: str, notebook: str, create: bool = True) -> Path:

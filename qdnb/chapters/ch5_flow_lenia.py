@@ -25,12 +25,82 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.lenia import flow_lenia as fl
-from qdnb.lenia.flt import FLT, frame_errors, unroll
-from qdnb.loops import scan_in_chunks
+from qdnb.core.evaluation import Evaluation
+from qdnb.core.loops import scan_in_chunks
+from qdnb.models.lenia import flow_lenia as fl
+from qdnb.models.lenia.flow_lenia import FlowLeniaConfig
+from qdnb.models.lenia.flt import FLT, FLTConfig, frame_errors, unroll
 from qdnb.qd import repertoire as rep_lib
 from qdnb.qd.cvt import grid_centroids
+from qdnb.qd.map_elites import MapElites
 from qdnb.qd.variation import gaussian_mutation
+
+
+@dataclass(frozen=True)
+class FlowLeniaChapterConfig:
+    """Chapter 5: Flow Lenia (Table 5.1), the FLT (Section 5.3.1) and the surprise search.
+
+    ``world`` is the simulator (grid, kernels, Table 5.1 ranges; below ``paper``
+    the grid, the initial patch and the kernel radii shrink together);
+    ``flt`` the model and its training.  ``system_candidates`` systems are drawn
+    for ``pick_system`` (``system_probes`` episodes each); ``eval_episodes``
+    held-out episodes score the FLT and the baselines; the surprise search runs
+    ``search_iterations`` MAP-Elites iterations of ``search_batch`` initial
+    states on a ``search_bins`` grid.
+    """
+
+    num_seeds: int
+    world: FlowLeniaConfig
+    flt: FLTConfig
+    gallery_systems: int = 6
+    system_candidates: int = 16
+    system_probes: int = 4
+    eval_episodes: int = 128
+    eval_batch: int = 16
+    search_iterations: int = 20
+    search_batch: int = 32
+    search_bins: tuple[int, int] = (8, 8)
+    search_sigma: float = 0.1
+    search_chunk: int = 5
+
+    def __post_init__(self):
+        if self.eval_episodes < 64:
+            raise ValueError(
+                "eval_episodes must be at least 64 (Figure 5.5's quartiles), got "
+                f"{self.eval_episodes}"
+            )
+        for name in (
+            "num_seeds",
+            "gallery_systems",
+            "system_candidates",
+            "system_probes",
+            "eval_batch",
+            "search_batch",
+            "search_chunk",
+        ):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.search_iterations < 0:
+            raise ValueError(
+                f"search_iterations must be non-negative, got {self.search_iterations}"
+            )
+        if self.world.steps < 50:
+            raise ValueError(
+                "Figure 5.4 shows t = 1 .. 50: world.steps must be at least 50, got "
+                f"{self.world.steps}"
+            )
+
+
+def lenia_world(size: int, kernels: int = 10) -> FlowLeniaConfig:
+    """A ``size x size`` world with the patch (40 cells at 128) and the kernel radii
+    (``(R + 15) r`` cells at 128) scaled with the grid: ``radius_scale = size / 128``."""
+    return FlowLeniaConfig(
+        height=size,
+        width=size,
+        kernels=kernels,
+        patch_size=max(2, round(40 * size / 128)),
+        radius_scale=size / 128,
+    )
 
 
 def occupancy(A: jax.Array, threshold: float = 0.01) -> jax.Array:
@@ -58,9 +128,16 @@ class SystemCriteria:
     window: int = 5
 
     def __post_init__(self):
-        if not (self.max_growth > 0 and 0 <= self.min_diversity <= 1 and self.max_change > 0 and self.window >= 1):
-            raise ValueError(f"invalid system criteria {self}: max_growth and max_change must be positive, "
-                             f"min_diversity in [0, 1], window at least 1")
+        if not (
+            self.max_growth > 0
+            and 0 <= self.min_diversity <= 1
+            and self.max_change > 0
+            and self.window >= 1
+        ):
+            raise ValueError(
+                f"invalid system criteria {self}: max_growth and max_change must be positive, "
+                f"min_diversity in [0, 1], window at least 1"
+            )
 
 
 def world_statistics(A: jax.Array, window: int = 5) -> dict[str, float]:
@@ -72,10 +149,12 @@ def world_statistics(A: jax.Array, window: int = 5) -> dict[str, float]:
     A = jnp.sum(A, axis=-1)
     final = A[:, -1]
     energy = jnp.maximum(jnp.mean(final**2), 1e-12)
-    step = A[:, -window:] - A[:, -window - 1:-1]
-    return {"occupancy": float(jnp.mean(occupancy(final[..., None]))),
-            "diversity": float(jnp.mean(jnp.var(final, axis=0)) / energy),
-            "change": float(jnp.mean(step**2) / energy)}
+    step = A[:, -window:] - A[:, -window - 1 : -1]
+    return {
+        "occupancy": float(jnp.mean(occupancy(final[..., None]))),
+        "diversity": float(jnp.mean(jnp.var(final, axis=0)) / energy),
+        "change": float(jnp.mean(step**2) / energy),
+    }
 
 
 @dataclass
@@ -87,8 +166,14 @@ class SystemChoice:
     patch_occupancy: float  # the initial patch's share of the grid
 
 
-def probe_statistics(system: fl.System, world: fl.FlowLeniaConfig, key: jax.Array, probes: int = 8,
-                     window: int = 5, perturbation: float = 1e-3) -> dict[str, float]:
+def probe_statistics(
+    system: fl.System,
+    world: fl.FlowLeniaConfig,
+    key: jax.Array,
+    probes: int = 8,
+    window: int = 5,
+    perturbation: float = 1e-3,
+) -> dict[str, float]:
     """``world_statistics`` of ``probes`` episodes of ``system`` from random initial
     states, and two more, as mean squared changes of the final frames over the
     mean of ``(A^T)^2``: ``replay``, when the same initial states are simulated
@@ -97,7 +182,9 @@ def probe_statistics(system: fl.System, world: fl.FlowLeniaConfig, key: jax.Arra
     ``perturbation`` on the matter (near 0: the ending is a smooth function of
     ``x_0``; near twice the diversity: as different as another initial state's)."""
     if probes < 2:
-        raise ValueError(f"probes must be at least 2 (diversity is a variance across them), got {probes}")
+        raise ValueError(
+            f"probes must be at least 2 (diversity is a variance across them), got {probes}"
+        )
     k_sim, k_noise, k_replay = jax.random.split(key, 3)
     episodes = fl.simulate_system(system, k_sim, world, probes)
     row = world_statistics(episodes.A, window)
@@ -112,8 +199,13 @@ def probe_statistics(system: fl.System, world: fl.FlowLeniaConfig, key: jax.Arra
     return row
 
 
-def pick_system(key: jax.Array, world: fl.FlowLeniaConfig, candidates: int = 16, probes: int = 8,
-                criteria: SystemCriteria = SystemCriteria()) -> SystemChoice:
+def pick_system(
+    key: jax.Array,
+    world: fl.FlowLeniaConfig,
+    candidates: int = 16,
+    probes: int = 8,
+    criteria: SystemCriteria = SystemCriteria(),
+) -> SystemChoice:
     """The first of ``candidates`` random systems (Table 5.1) whose ``probes``
     episodes meet every one of ``criteria``; if none does, the one meeting the most,
     the most settled among those.  The rule looks at simulations only, never at a
@@ -129,9 +221,11 @@ def pick_system(key: jax.Array, world: fl.FlowLeniaConfig, candidates: int = 16,
         systems.append(fl.sample_system(k_sys, world))
         rows.append(probe_statistics(systems[-1], world, k_probe, probes, criteria.window))
     stats = {name: np.array([r[name] for r in rows]) for name in rows[0]}
-    passed = {"localised": stats["occupancy"] <= criteria.max_growth * patch,
-              "diverse": stats["diversity"] >= criteria.min_diversity,
-              "settled": stats["change"] <= criteria.max_change}
+    passed = {
+        "localised": stats["occupancy"] <= criteria.max_growth * patch,
+        "diverse": stats["diversity"] >= criteria.min_diversity,
+        "settled": stats["change"] <= criteria.max_change,
+    }
     count = sum(v.astype(int) for v in passed.values())
     ok = np.flatnonzero(count == len(passed))
     if ok.size:
@@ -142,8 +236,28 @@ def pick_system(key: jax.Array, world: fl.FlowLeniaConfig, candidates: int = 16,
     return SystemChoice(systems[index], index, stats, passed, patch)
 
 
-def evaluate(model: FLT, params: Any, world: fl.FlowLeniaConfig, system: fl.System, mean_frames: np.ndarray,
-             key: jax.Array, episodes: int, batch: int = 16) -> dict[str, Any]:
+# the predictors Figure 5.5 compares, each ``(model, params, episodes, mean_frames) -> frames 1..T``
+METHODS = {
+    "flt": lambda model, params, truth, mean_frames: unroll(model, params, truth[:, 0]),
+    "persistence": lambda model, params, truth, mean_frames: jnp.broadcast_to(
+        truth[:, :1], truth[:, 1:].shape
+    ),
+    "mean_frame": lambda model, params, truth, mean_frames: jnp.broadcast_to(
+        mean_frames[1:], truth[:, 1:].shape
+    ),
+}
+
+
+def evaluate(
+    model: FLT,
+    params: Any,
+    world: fl.FlowLeniaConfig,
+    system: fl.System,
+    mean_frames: np.ndarray,
+    key: jax.Array,
+    episodes: int,
+    batch: int = 16,
+) -> dict[str, Any]:
     """Simulate ``episodes`` held-out episodes and score the three predictors frame
     by frame: ``errors[predictor]["A" | "frame"]`` ``(episodes, T)`` for the
     predictions of ``x_1 .. x_T`` (``frame_errors``), plus ``"flt_teacher_forced"``: the FLT fed
@@ -152,28 +266,42 @@ def evaluate(model: FLT, params: Any, world: fl.FlowLeniaConfig, system: fl.Syst
     if episodes < 1 or batch < 1:
         raise ValueError(f"episodes and batch must be positive, got {episodes} and {batch}")
     mean_frames = jnp.asarray(mean_frames)
-    parts: dict[str, list] = {"flt": [], "persistence": [], "mean_frame": [], "flt_teacher_forced": []}
+    parts: dict[str, list] = {
+        "flt": [],
+        "persistence": [],
+        "mean_frame": [],
+        "flt_teacher_forced": [],
+    }
     truth_kept, flt_kept, drifts = [], [], []
     for i, start in enumerate(range(0, episodes, batch)):
         n = min(batch, episodes - start)
         truth = fl.frames(fl.simulate_system(system, jax.random.fold_in(key, i), world, batch))[:n]
-        pred = unroll(model, params, truth[:, 0])
         drifts.append(np.asarray(fl.mass_drift(truth[..., :1])))
         later = truth[:, 1:]
-        parts["flt"].append(frame_errors(pred, later))
+        preds = {
+            name: predict(model, params, truth, mean_frames) for name, predict in METHODS.items()
+        }
+        for name, p in preds.items():
+            parts[name].append(frame_errors(p, later))
         parts["flt_teacher_forced"].append(frame_errors(model.apply(params, truth[:, :-1]), later))
-        parts["persistence"].append(frame_errors(jnp.broadcast_to(truth[:, :1], later.shape), later))
-        parts["mean_frame"].append(frame_errors(jnp.broadcast_to(mean_frames[1:], later.shape), later))
+        pred = preds["flt"]
         if sum(len(x) for x in truth_kept) < 3:  # keep the first three episodes for the figures
             truth_kept.append(np.asarray(truth[:3]))
             flt_kept.append(np.asarray(pred[:3]))
-    errors = {name: {q: np.concatenate([np.asarray(p[q]) for p in ps]) for q in ("A", "frame")}
-              for name, ps in parts.items()}
-    return {"errors": errors, "truth": np.concatenate(truth_kept)[:3], "flt": np.concatenate(flt_kept)[:3],
-            "drift": np.concatenate(drifts)}
+    errors = {
+        name: {q: np.concatenate([np.asarray(p[q]) for p in ps]) for q in ("A", "frame")}
+        for name, ps in parts.items()
+    }
+    return {
+        "errors": errors,
+        "truth": np.concatenate(truth_kept)[:3],
+        "flt": np.concatenate(flt_kept)[:3],
+        "drift": np.concatenate(drifts),
+    }
 
 
 # ----- the surprise search (Section 5.3.2) -----
+
 
 def centre_of_mass(A: jax.Array, torus: bool = False) -> jax.Array:
     """Centre of mass of ``A`` ``(H, W, C)`` in cells: the mass-weighted mean position,
@@ -221,8 +349,9 @@ def pattern_descriptors(A0: jax.Array, AT: jax.Array, torus: bool = False) -> ja
 
 @dataclass(frozen=True)
 class SurpriseSearch:
-    """MAP-Elites (``qdnb.qd.repertoire``) over initial states ``(patch_a, patch_p)``
-    of the FLT's system (``patch_p`` one vector or one per cell, by the world's ``p0``); fitness = surprise, the FLT's final-frame MSE on ``A``;
+    """MAP-Elites (``qdnb.qd.map_elites.MapElites``) over initial states ``(patch_a, patch_p)``
+    of the FLT's system (``patch_p`` one vector or one per cell, by the world's ``p0``); fitness =
+    surprise, the FLT's final-frame MSE on ``A``;
     descriptors = ``pattern_descriptors`` on a ``bins`` grid over
     ``[0, max_displacement] x [min_spread, max_spread]`` (grid-side units;
     descriptors outside are clipped to the border cells).  Offspring are
@@ -247,53 +376,128 @@ class SurpriseSearch:
 
     def evaluate(self, params: Any, system: fl.System, genotypes: Any, key: jax.Array):
         """Surprise, descriptors and final frames (truth, FLT) of a batch of genotypes."""
-        states = jax.vmap(lambda a, p: fl.place_patch(a, p, self.world))(genotypes["a"], genotypes["p"])
+        states = jax.vmap(lambda a, p: fl.place_patch(a, p, self.world))(
+            genotypes["a"], genotypes["p"]
+        )
         truth = fl.frames(fl.rollout_batch(system, states, key, self.world))
         pred = unroll(self.model, params, truth[:, 0])
         surprise = frame_errors(pred[:, -1], truth[:, -1])["A"]
         torus = self.world.border == "torus"
-        desc = jax.vmap(lambda a0, aT: pattern_descriptors(a0, aT, torus))(truth[:, 0, ..., :1], truth[:, -1, ..., :1])
+        desc = jax.vmap(lambda a0, aT: pattern_descriptors(a0, aT, torus))(
+            truth[:, 0, ..., :1], truth[:, -1, ..., :1]
+        )
         return surprise, desc, truth[:, -1], pred[:, -1], fl.mass_drift(truth[..., :1])
 
     def random_genotypes(self, key: jax.Array) -> dict[str, jax.Array]:
         """Initial states as in training (``flow_lenia.initial_patches``): the matter
         patch and the parameters by the world's ``p0`` rule."""
-        a, p = jax.vmap(fl.initial_patches, in_axes=(0, None))(jax.random.split(key, self.batch_size), self.world)
+        a, p = jax.vmap(fl.initial_patches, in_axes=(0, None))(
+            jax.random.split(key, self.batch_size), self.world
+        )
         return {"a": a, "p": p}
 
-    def run(self, params: Any, system: fl.System, key: jax.Array, iterations: int, chunk_size: int = 5,
-            progress: bool = True) -> tuple[rep_lib.Repertoire, dict[str, np.ndarray]]:
+    def map_elites(self, params: Any, system: fl.System) -> MapElites:
+        """The search as a ``MapElites``: its scoring function plays the system and
+        scores the FLT's surprise (descriptors clipped to the grid's box; the raw
+        ones and the mass drift ride in ``Evaluation.extra``), its variation is the
+        clipped Gaussian mutation."""
+        low, high = self.world.h_range
+
+        def score(genotypes: Any, key: jax.Array) -> Evaluation:
+            surprise, desc, _, _, drift = self.evaluate(params, system, genotypes, key)
+            clipped = jnp.clip(desc, jnp.array(self.low), jnp.array(self.high))
+            length = jnp.full(surprise.shape, self.world.steps)
+            return Evaluation(
+                fitness=surprise,
+                descriptor=clipped,
+                length=length,
+                extra={"descriptors": desc, "drift": drift},
+            )
+
+        def mutate(parents: Any, key: jax.Array) -> Any:
+            children = gaussian_mutation(parents, key, self.sigma)
+            return {"a": jnp.clip(children["a"], 0.0, 1.0), "p": jnp.clip(children["p"], low, high)}
+
+        return MapElites(
+            centroids=grid_centroids(self.bins, self.low, self.high),
+            batch_size=self.batch_size,
+            scoring_fn=score,
+            init_fn=lambda key, n: self.random_genotypes(key),
+            variation_fn=mutate,
+        )
+
+    def run(
+        self,
+        params: Any,
+        system: fl.System,
+        key: jax.Array,
+        iterations: int,
+        chunk_size: int = 5,
+        progress: bool = True,
+    ) -> tuple[rep_lib.Repertoire, dict[str, np.ndarray]]:
         """``iterations`` MAP-Elites iterations after a random initial batch: the final
         repertoire and, per evaluation (initial batch first), surprise, descriptors
         and mass drift."""
         if iterations < 0:
             raise ValueError(f"iterations must be non-negative, got {iterations}")
-        centroids = grid_centroids(self.bins, self.low, self.high)
-        k_init, k_eval, key = jax.random.split(key, 3)
-        genotypes = self.random_genotypes(k_init)
-        low, high = self.world.h_range
+        me = self.map_elites(params, system)
+        state, evs = scan_in_chunks(
+            me.step, jax.jit(me.start)(key), iterations + 1, chunk_size, "surprise search", progress
+        )
+        history = {"surprise": evs.fitness, **evs.extra}
+        return state.repertoire, {
+            k: np.asarray(v).reshape((-1,) + v.shape[2:]) for k, v in history.items()
+        }
 
-        def insert(repertoire, genotypes, key):
-            surprise, desc, _, _, drift = self.evaluate(params, system, genotypes, key)
-            clipped = jnp.clip(desc, jnp.array(self.low), jnp.array(self.high))
-            repertoire, _ = rep_lib.insert(repertoire, genotypes, surprise, clipped)
-            return repertoire, {"surprise": surprise, "descriptors": desc, "drift": drift}
 
-        repertoire, first = jax.jit(insert)(rep_lib.init_repertoire(centroids, jax.tree.map(lambda x: x[0], genotypes)),
-                                            genotypes, k_eval)
+Config = FlowLeniaChapterConfig
 
-        def one(carry):
-            repertoire, key = carry
-            key, k_sel, k_mut, k_eval = jax.random.split(key, 4)
-            parents = rep_lib.sample(repertoire, k_sel, self.batch_size)
-            children = gaussian_mutation(parents, k_mut, self.sigma)
-            children = {"a": jnp.clip(children["a"], 0.0, 1.0), "p": jnp.clip(children["p"], low, high)}
-            repertoire, record = insert(repertoire, children, k_eval)
-            return (repertoire, key), record
 
-        history = {k: np.asarray(v)[None] for k, v in first.items()}
-        if iterations:
-            (repertoire, _), records = scan_in_chunks(one, (repertoire, key), iterations, chunk_size,
-                                                      "surprise search", progress)
-            history = {k: np.concatenate([history[k], np.asarray(records[k])]) for k in history}
-        return repertoire, {k: v.reshape((-1,) + v.shape[2:]) for k, v in history.items()}
+# The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
+SCALES = {
+    "tiny": FlowLeniaChapterConfig(
+        num_seeds=1,
+        world=lenia_world(16, kernels=4),
+        gallery_systems=3,
+        system_candidates=4,
+        system_probes=2,
+        eval_episodes=64,
+        search_iterations=3,
+        search_batch=8,
+        search_bins=(4, 4),
+        search_chunk=3,
+        flt=FLTConfig(
+            embed_dim=16, num_layers=1, num_heads=2, features=(4, 8), batch_size=4, train_steps=20
+        ),
+    ),
+    "small": FlowLeniaChapterConfig(
+        num_seeds=1,
+        world=lenia_world(32),
+        flt=FLTConfig(
+            embed_dim=128,
+            num_layers=2,
+            num_heads=4,
+            features=(8, 16, 32),
+            batch_size=8,
+            learning_rate=1e-3,
+            train_steps=800,
+        ),
+    ),  # bench/flt_sweep.py: "narrow-cnn"
+    "paper": FlowLeniaChapterConfig(
+        num_seeds=1,
+        world=lenia_world(128),
+        eval_episodes=256,
+        search_iterations=200,
+        search_batch=64,
+        search_bins=(16, 16),
+        flt=FLTConfig(
+            embed_dim=256,
+            num_layers=4,
+            num_heads=8,
+            features=(32, 64, 128, 128),
+            batch_size=32,
+            learning_rate=3e-4,
+            train_steps=20_000,
+        ),
+    ),
+}

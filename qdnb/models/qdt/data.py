@@ -1,15 +1,12 @@
 """Datasets for the Quality-Diversity Transformer (Section 4.4.4 and 4.5.3).
 
-1. ``load_or_recompute_repertoires``: the ME, ME-LS, PGA-ME and PGA-ME-LS
-   repertoires of the Chapter 4 run at the same scale, recomputed (and saved
-   there) when they are missing or were computed under another config.
-2. ``select_policies`` (Section 4.4.4): split the descriptor space into zones (a
+1. ``select_policies`` (Section 4.4.4): split the descriptor space into zones (a
    CVT), let every stored policy play a few episodes, and keep, for each zone,
    the policy whose episodes land in its own zone most often.
-3. ``record``: the kept policies play episodes whose observations, actions,
+2. ``record``: the kept policies play episodes whose observations, actions,
    achieved descriptor and fitness form the dataset (``Trajectories``); the
    conditioning BD of a trajectory is the descriptor it achieved.
-4. Pruned datasets for the generalisation experiment: a random fraction of the
+3. Pruned datasets for the generalisation experiment: a random fraction of the
    trajectories (interpolation), or every trajectory whose achieved descriptor
    falls in removed regions, "tiles" or "upper" (extrapolation).
 """
@@ -24,70 +21,28 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from qdnb import paths
-from qdnb.provenance import load_summary
+from qdnb.envs.player import Player
 from qdnb.qd.cvt import nearest
 from qdnb.qd.metrics import grid_cell
 from qdnb.qd.repertoire import Repertoire
-from qdnb.qd.reproducibility import Player, load_repertoires, run_environment, save_repertoires
-from qdnb.scale import ReproducibilityConfig, config_hash
 
 SOURCES = ("ME", "ME-LS", "PGA-ME", "PGA-ME-LS")  # repertoires a QDT is trained from
 NAIVE = "Naive"  # QDT(Naive): every ME-LS policy, no selection
 PRUNINGS = ("50%", "30%", "10%", "tiles", "upper")
 
 
-# ----- the Chapter 4 repertoires -----
-
-def repertoire_path(scale: str, env_name: str, method: str):
-    return paths.run_dir(scale, "ch4_reproducibility") / f"repertoire_{env_name}_{method}.npz"
-
-
-def load_or_recompute_repertoires(repro_cfg: ReproducibilityConfig, scale: str, seed: int,
-                                  progress: bool = True) -> tuple[dict, dict]:
-    """``repertoires[env][method]`` (the arrays of ``load_repertoires``, stacked over
-    the Chapter 4 seeds) and ``status[env][method]``: ``"loaded"``, or why it was
-    recomputed.  Recomputation runs the Chapter 4 code with the Chapter 4
-    notebook's keys (so it gives the same repertoires) and saves them there."""
-    digest = config_hash(repro_cfg)
-    summary = load_summary(scale, "ch4_reproducibility")
-    seed_differs = summary is not None and summary.get("seed") != seed
-    repertoires: dict[str, dict[str, Any]] = {}
-    status: dict[str, dict[str, str]] = {}
-    for i, env_name in enumerate(repro_cfg.environments):
-        repertoires[env_name], status[env_name] = {}, {}
-        missing = []
-        for method in SOURCES:
-            path = repertoire_path(scale, env_name, method)
-            loaded = None if seed_differs else load_repertoires(path, digest)
-            if loaded is not None:
-                repertoires[env_name][method] = loaded
-                status[env_name][method] = "loaded"
-            else:
-                missing.append(method)
-                status[env_name][method] = ("recomputed: the Chapter 4 run used another seed" if seed_differs
-                                            else "recomputed: missing" if not path.exists()
-                                            else "recomputed: computed under another config")
-        if missing:  # the same key as run_environments(cfg, PRNGKey(seed)) gives this environment
-            key = jax.random.fold_in(jax.random.PRNGKey(seed), i)
-            out = run_environment(repro_cfg, env_name, key, progress, methods=tuple(missing))
-            for method in missing:
-                r = out["methods"][method]
-                path = save_repertoires(repertoire_path(scale, env_name, method), digest, r["repertoire"],
-                                        r["spread_at_insertion"], r["reassessed_spread"])
-                repertoires[env_name][method] = load_repertoires(path, digest)
-    return repertoires, status
-
-
 def seed_repertoire(arrays: dict[str, Any], index: int) -> Repertoire:
     """Seed ``index`` of a stack of repertoires loaded by ``load_repertoires``."""
-    return Repertoire(genotypes=jax.tree.map(lambda x: jnp.asarray(x[index]), arrays["genotypes"]),
-                      fitnesses=jnp.asarray(arrays["fitnesses"][index]),
-                      descriptors=jnp.asarray(arrays["descriptors"][index]),
-                      centroids=jnp.asarray(arrays["centroids"]))
+    return Repertoire(
+        genotypes=jax.tree.map(lambda x: jnp.asarray(x[index]), arrays["genotypes"]),
+        fitnesses=jnp.asarray(arrays["fitnesses"][index]),
+        descriptors=jnp.asarray(arrays["descriptors"][index]),
+        centroids=jnp.asarray(arrays["centroids"]),
+    )
 
 
 # ----- Section 4.4.4: one consistent policy per zone -----
+
 
 @struct.dataclass
 class Selection:
@@ -108,11 +63,14 @@ class Selection:
 def zone_of(zones: jax.Array, descriptors: jax.Array) -> np.ndarray:
     """Index of the nearest zone centroid of each descriptor (any leading shape)."""
     d = np.asarray(descriptors)
-    return np.asarray(nearest(jnp.asarray(zones), jnp.asarray(d.reshape(-1, d.shape[-1])))).reshape(d.shape[:-1])
+    return np.asarray(nearest(jnp.asarray(zones), jnp.asarray(d.reshape(-1, d.shape[-1])))).reshape(
+        d.shape[:-1]
+    )
 
 
-def select_policies(repertoire: Repertoire, zones: jax.Array, player: Player, num_episodes: int,
-                    key: jax.Array) -> Selection:
+def select_policies(
+    repertoire: Repertoire, zones: jax.Array, player: Player, num_episodes: int, key: jax.Array
+) -> Selection:
     """Section 4.4.4: every stored policy plays ``num_episodes`` episodes; its zone
     is the zone of its stored descriptor; in each zone the policy whose episodes
     land in that zone most often is kept (ties: the higher mean fitness, then
@@ -127,11 +85,19 @@ def select_policies(repertoire: Repertoire, zones: jax.Array, player: Player, nu
     fitness = np.asarray(jnp.mean(ev.fitness, axis=1))
     order = np.lexsort((np.arange(cells.size), -fitness, -hit_rate, home))  # by zone, best first
     first = order[np.r_[True, home[order][1:] != home[order][:-1]]]
-    return Selection(cells=cells[first], zones=home[first], hit_rate=hit_rate[first], fitness=fitness[first],
-                     all_cells=cells, all_hit_rate=hit_rate, all_fitness=fitness)
+    return Selection(
+        cells=cells[first],
+        zones=home[first],
+        hit_rate=hit_rate[first],
+        fitness=fitness[first],
+        all_cells=cells,
+        all_hit_rate=hit_rate,
+        all_fitness=fitness,
+    )
 
 
 # ----- the trajectories -----
+
 
 @struct.dataclass
 class Trajectories:
@@ -151,20 +117,34 @@ class Trajectories:
         return int(self.bd.shape[0])
 
     def subset(self, keep: np.ndarray) -> "Trajectories":
-        index = np.flatnonzero(np.asarray(keep)) if np.asarray(keep).dtype == bool else np.asarray(keep)
+        index = (
+            np.flatnonzero(np.asarray(keep)) if np.asarray(keep).dtype == bool else np.asarray(keep)
+        )
         return jax.tree.map(lambda x: x[index], self)
 
 
-def record(repertoire: Repertoire, cells: np.ndarray, episodes_per_policy: int, player: Player,
-           key: jax.Array) -> Trajectories:
+def record(
+    repertoire: Repertoire,
+    cells: np.ndarray,
+    episodes_per_policy: int,
+    player: Player,
+    key: jax.Array,
+) -> Trajectories:
     """Each policy of ``cells`` plays ``episodes_per_policy`` episodes from random
     initial states (``player`` must be built with ``record=True``)."""
     cells = np.asarray(cells)
-    genotypes = jax.tree.map(lambda x: jnp.repeat(x[cells], episodes_per_policy, axis=0), repertoire.genotypes)
+    genotypes = jax.tree.map(
+        lambda x: jnp.repeat(x[cells], episodes_per_policy, axis=0), repertoire.genotypes
+    )
     ev = player.play(genotypes, jax.random.split(key, cells.size * episodes_per_policy))
-    return Trajectories(bd=ev.descriptor, obs=ev.trajectory["obs"], actions=ev.trajectory["action"],
-                        valid=ev.trajectory["valid"], fitness=ev.fitness,
-                        policy=jnp.asarray(np.repeat(cells, episodes_per_policy)))
+    return Trajectories(
+        bd=ev.descriptor,
+        obs=ev.trajectory["obs"],
+        actions=ev.trajectory["action"],
+        valid=ev.trajectory["valid"],
+        fitness=ev.fitness,
+        policy=jnp.asarray(np.repeat(cells, episodes_per_policy)),
+    )
 
 
 def naive_episodes_per_policy(num_selected: int, episodes_per_policy: int, num_filled: int) -> int:
@@ -175,11 +155,14 @@ def naive_episodes_per_policy(num_selected: int, episodes_per_policy: int, num_f
 
 # ----- pruned datasets (Section 4.5.3) -----
 
+
 def removed_tiles(descriptors: np.ndarray, low, high, tiles: int) -> np.ndarray:
     """The "Tiles" region: split the descriptor space into ``tiles x tiles``
     squares and remove every other one, as the dark squares of a checkerboard
     (square ``(i, j)`` removed when ``i + j`` is odd): half the space, in blocks."""
-    cell = np.asarray(grid_cell(jnp.asarray(descriptors), (tiles, tiles), low, high))  # i * tiles + j
+    cell = np.asarray(
+        grid_cell(jnp.asarray(descriptors), (tiles, tiles), low, high)
+    )  # i * tiles + j
     return (cell // tiles + cell % tiles) % 2 == 1
 
 
@@ -215,5 +198,7 @@ def density(descriptors: np.ndarray, low, high, bins: int) -> np.ndarray:
     """Number of trajectories per square of a ``bins x bins`` grid (rows: second
     descriptor), for the density maps of Figures 4.10 and 4.11."""
     d = np.asarray(descriptors)
-    hist, _, _ = np.histogram2d(d[:, 0], d[:, 1], bins=bins, range=[[low[0], high[0]], [low[1], high[1]]])
+    hist, _, _ = np.histogram2d(
+        d[:, 0], d[:, 1], bins=bins, range=[[low[0], high[0]], [low[1], high[1]]]
+    )
     return hist.T

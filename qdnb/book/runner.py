@@ -20,18 +20,10 @@ import sys
 import time
 from pathlib import Path
 
-from qdnb import paths
-from qdnb.provenance import atomic_write_bytes, atomic_write_json, load_summary
-from qdnb.scale import SCALES, check_scale
-
-# Book order; chapters without a notebook yet are listed as planned.
-CHAPTERS = {
-    "ch2_primer": "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
-    "ch3_qdpg": "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap",
-    "ch4_reproducibility": "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni",
-    "ch4_qdt": "Chapter 4: the Quality-Diversity Transformer",
-    "ch5_flow_lenia": "Chapter 5: the Flow Lenia Transformer",
-}
+from qdnb.book import registry
+from qdnb.core import paths
+from qdnb.core.config import SCALES, check_scale
+from qdnb.core.io import atomic_write_bytes, atomic_write_json, load_summary
 
 
 class NotebookFailed(RuntimeError):
@@ -39,17 +31,18 @@ class NotebookFailed(RuntimeError):
 
 
 def notebook_names() -> list[str]:
-    """Notebooks in ``notebooks/``, in book order."""
-    present = {p.stem for p in paths.NOTEBOOKS.glob("*.ipynb")}
-    ordered = [n for n in CHAPTERS if n in present]
-    return ordered + sorted(present - set(ordered))
+    """The registered chapters' notebooks present in ``notebooks/``, in book order."""
+    return [c.name for c in registry.CHAPTERS if c.notebook.exists()]
 
 
 def check_notebooks(names: list[str]) -> list[str]:
     valid = notebook_names()
     unknown = [n for n in names if n not in valid]
     if unknown:
-        raise ValueError(f"unknown notebook(s) {', '.join(map(repr, unknown))}; valid notebooks: {', '.join(valid)}")
+        raise ValueError(
+            f"unknown notebook(s) {', '.join(map(repr, unknown))}; valid notebooks: "
+            f"{', '.join(valid)}"
+        )
     return names
 
 
@@ -83,7 +76,9 @@ def _kernel_path(scale: str) -> str:
     with that scale's ``KERNEL_XLA_FLAGS``), put first on ``JUPYTER_PATH``, so
     that a user-level kernel of another Python never runs the notebooks."""
     kdir = paths.RUNS / ".jupyter" / scale / "kernels" / "python3"
-    env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(paths.ROOT), os.environ.get("PYTHONPATH")]))}
+    env = {
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(paths.ROOT), os.environ.get("PYTHONPATH")]))
+    }
     flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS"), KERNEL_XLA_FLAGS.get(scale)]))
     if flags:
         env["XLA_FLAGS"] = flags
@@ -97,25 +92,45 @@ def _kernel_path(scale: str) -> str:
     return str(kdir.parent.parent)
 
 
-def execute(source: Path, output: Path, parameters: dict, label: str, progress: bool = True) -> Path:
+def execute(
+    source: Path, output: Path, parameters: dict, label: str, progress: bool = True
+) -> Path:
     """Run ``source`` with papermill into ``output`` (its kernel the one of
     ``parameters["scale"]``); raise ``NotebookFailed`` naming the notebook and the
-    failing cell, leaving the partly executed copy."""
+    failing cell, leaving the partly executed copy.  With ``progress``, the
+    notebook's own progress bars (its loops, their rates and ETAs) stream to this
+    terminal as the kernel writes them; the executed copy keeps only their last
+    state (``tidy_streams``)."""
     import papermill as pm
 
     output.parent.mkdir(parents=True, exist_ok=True)
     env_before = os.environ.get("JUPYTER_PATH")
-    os.environ["JUPYTER_PATH"] = os.pathsep.join(filter(None, [_kernel_path(parameters["scale"]), env_before]))
+    os.environ["JUPYTER_PATH"] = os.pathsep.join(
+        filter(None, [_kernel_path(parameters["scale"]), env_before])
+    )
+    if progress:
+        print(
+            f"── {label} ({parameters['scale']}): executing {source.name}",
+            file=sys.stderr,
+            flush=True,
+        )
     try:
         pm.execute_notebook(
-            str(source), str(output), parameters=parameters, kernel_name="python3",
-            cwd=str(source.parent), progress_bar=progress, log_output=False,
+            str(source),
+            str(output),
+            parameters=parameters,
+            kernel_name="python3",
+            cwd=str(source.parent),
+            progress_bar=False,
+            log_output=False,
+            stderr_file=sys.stderr if progress else None,
         )
     except pm.PapermillExecutionError as err:
         first_line = (err.source or "").strip().splitlines()[:1]
         raise NotebookFailed(
             f"notebook {label!r} failed in cell {err.cell_index} (execution count {err.exec_count}"
-            f"{', starting ' + repr(first_line[0]) if first_line else ''}): {err.ename}: {err.evalue}\n"
+            f"{', starting ' + repr(first_line[0]) if first_line else ''}): {err.ename}: "
+            f"{err.evalue}\n"
             f"partly executed copy left at {output}"
         ) from None
     finally:
@@ -135,17 +150,27 @@ def _last_write(line: str) -> str:
 def tidy_streams(path: Path) -> None:
     """Merge consecutive stdout/stderr outputs of each cell and keep only the last
     state of carriage-return-rewritten lines, so that a progress bar reads as one
-    finished line in the book instead of one line per update."""
+    finished line in the book instead of one line per update; tag papermill's
+    injected parameters cell ``remove-cell``."""
     import nbformat
 
     nb = nbformat.read(path, as_version=4)
     for cell in nb.cells:
         if cell.cell_type != "code":
             continue
+        tags = cell.metadata.setdefault("tags", [])
+        if "injected-parameters" in tags and "remove-cell" not in tags:
+            tags.append(
+                "remove-cell"
+            )  # the page shows the one-line scale/seed/config header instead
         merged = []
         for out in cell.outputs:
-            if out.output_type == "stream" and merged and merged[-1].output_type == "stream" \
-                    and merged[-1].name == out.name:
+            if (
+                out.output_type == "stream"
+                and merged
+                and merged[-1].output_type == "stream"
+                and merged[-1].name == out.name
+            ):
                 merged[-1].text += out.text
             else:
                 merged.append(out)
@@ -157,7 +182,45 @@ def tidy_streams(path: Path) -> None:
     atomic_write_bytes(path, nbformat.writes(nb).encode())
 
 
-def run_notebook(name: str, scale: str, seed: int = 0, reuse: bool = False, progress: bool = True) -> Path:
+_WARNING = re.compile(r"\b\w*Warning\b:|^\s*warnings\.warn\(", re.M)
+
+
+def machine_paths() -> list[str]:
+    """Paths of this machine that a rendered page must never show: the repository,
+    the interpreter's prefix (the venv) and the home directory."""
+    found = {str(paths.ROOT), sys.prefix, os.path.expanduser("~")}
+    return sorted(p for p in found if len(p) > 1)
+
+
+def output_problems(path: Path) -> list[str]:
+    """Warnings and machine paths in the outputs of an executed notebook (what the
+    book would show); empty when the page is clean."""
+    import nbformat
+
+    problems = []
+    leaks = machine_paths()
+    for i, cell in enumerate(nbformat.read(path, as_version=4).cells):
+        for out in cell.get("outputs", []):
+            texts = [out.get("text", "")] + [
+                v
+                for k, v in out.get("data", {}).items()
+                if k.startswith("text/") and isinstance(v, str)
+            ]
+            for text in texts:
+                if out.get("output_type") == "stream" and _WARNING.search(text):
+                    problems.append(
+                        f"cell {i}: a warning: {_WARNING.search(text).group(0)!r}: "
+                        f"{text.strip()[:160]!r}"
+                    )
+                problems += [
+                    f"cell {i}: shows the machine path {leak!r}" for leak in leaks if leak in text
+                ]
+    return problems
+
+
+def run_notebook(
+    name: str, scale: str, seed: int = 0, reuse: bool = False, progress: bool = True
+) -> Path:
     """Execute one notebook at ``scale``; with ``reuse``, keep an earlier execution
     whose fingerprint matches.  Returns the executed copy."""
     check_notebooks([name])
@@ -173,13 +236,28 @@ def run_notebook(name: str, scale: str, seed: int = 0, reuse: bool = False, prog
     start = time.time()
     execute(paths.NOTEBOOKS / f"{name}.ipynb", out, {"scale": scale, "seed": seed}, name, progress)
     tidy_streams(out)
-    atomic_write_json(record_path, {"fingerprint": fp, "status": "ok", "seed": seed,
-                                    "execution_wall_time_s": round(time.time() - start, 2)})
+    problems = output_problems(out)
+    if problems:
+        raise NotebookFailed(
+            f"notebook {name!r} ran, but its page would show what a reader must not see:\n  "
+            + "\n  ".join(problems[:20])
+            + f"\nexecuted copy left at {out}"
+        )
+    atomic_write_json(
+        record_path,
+        {
+            "fingerprint": fp,
+            "status": "ok",
+            "seed": seed,
+            "execution_wall_time_s": round(time.time() - start, 2),
+        },
+    )
     return out
 
 
-def run_notebooks(names: list[str], scale: str, seed: int = 0, reuse: bool = False,
-                  progress: bool = True) -> list[Path]:
+def run_notebooks(
+    names: list[str], scale: str, seed: int = 0, reuse: bool = False, progress: bool = True
+) -> list[Path]:
     check_notebooks(names)
     check_scale(scale)
     return [run_notebook(n, scale, seed, reuse, progress) for n in names]
@@ -194,7 +272,7 @@ def status_table(scale: str) -> str:
         "|---|---|---|---|---|",
     ]
     present = set(notebook_names())
-    for name, title in CHAPTERS.items():
+    for name, title in ((c.name, c.title) for c in registry.CHAPTERS):
         summary = load_summary(scale, name) if name in present else None
         if name not in present:
             lines.append(f"| {title} | — | planned, not yet in the book | — | — |")
@@ -202,8 +280,10 @@ def status_table(scale: str) -> str:
             lines.append(f"| {title} | [{name}](chapters/{name}) | no summary written | — | — |")
         else:
             headline = summary.get("results", {}).get("headline", "")
-            lines.append(f"| {title} | [{name}](chapters/{name}) | ran (seed {summary['seed']}, "
-                         f"git {summary['git_sha'][:12]}) | {summary['wall_time_s']:.0f} s | {headline} |")
+            lines.append(
+                f"| {title} | [{name}](chapters/{name}) | ran (seed {summary['seed']}, "
+                f"git {summary['git_sha'][:12]}) | {summary['wall_time_s']:.0f} s | {headline} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -240,7 +320,9 @@ def external_resources(html_dir: Path) -> list[str]:
         for pattern in _EXTERNAL:
             for m in pattern.finditer(text):
                 tag = m.group(0)
-                if tag.lower().startswith("<link") and not re.search(r"rel=[\"'](stylesheet|preload|icon|modulepreload)", tag, re.I):
+                if tag.lower().startswith("<link") and not re.search(
+                    r"rel=[\"'](stylesheet|preload|icon|modulepreload)", tag, re.I
+                ):
                     continue
                 found.append(f"{f.relative_to(html_dir)}: {tag[:120]}")
     return found
@@ -258,18 +340,48 @@ def build_book(scale: str, seed: int = 0, force: bool = False, progress: bool = 
     for name, path in zip(names, executed):
         shutil.copy(path, chapters / f"{name}.ipynb")
     (paths.BOOK / "_status.md").write_text(status_table(scale))
+    (paths.BOOK / "_toc.yml").write_text(registry.toc())
     copy_mathjax(paths.BOOK / "_extra")
     exe = Path(sys.executable).parent / "jupyter-book"
-    cmd = [str(exe) if exe.exists() else "jupyter-book", "build", str(paths.BOOK), "--keep-going", "-W"]
+    cmd = [
+        str(exe) if exe.exists() else "jupyter-book",
+        "build",
+        str(paths.BOOK),
+        "--keep-going",
+        "-W",
+    ]
     proc = subprocess.run(cmd, cwd=paths.ROOT)
     if proc.returncode != 0:
         raise RuntimeError(f"jupyter-book build failed (exit {proc.returncode}): {' '.join(cmd)}")
     html = paths.BOOK / "_build" / "html"
+    leaked = [
+        f"{f.relative_to(html)}: {leak}"
+        for f in sorted(html.rglob("*.html"))
+        for leak in machine_paths()
+        if leak in f.read_text(errors="ignore")
+    ]
+    if leaked:
+        raise RuntimeError(
+            "the rendered book shows paths of this machine:\n  " + "\n  ".join(leaked[:20])
+        )
     external = external_resources(html)
     if external:
-        raise RuntimeError("the rendered book would fetch resources from the network:\n  " + "\n  ".join(external[:20]))
+        raise RuntimeError(
+            "the rendered book would fetch resources from the network:\n  "
+            + "\n  ".join(external[:20])
+        )
     return html / "index.html"
 
 
-__all__ = ["SCALES", "CHAPTERS", "NotebookFailed", "build_book", "run_notebook", "run_notebooks",
-           "notebook_names", "check_notebooks", "execute", "fingerprint", "external_resources"]
+__all__ = [
+    "SCALES",
+    "NotebookFailed",
+    "build_book",
+    "run_notebook",
+    "run_notebooks",
+    "notebook_names",
+    "check_notebooks",
+    "execute",
+    "fingerprint",
+    "external_resources",
+]

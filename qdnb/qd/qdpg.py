@@ -44,16 +44,15 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from qdnb.envs.base import Env
-from qdnb.envs.rollout import Evaluation, evaluate_policies
+from qdnb.core.evaluation import Evaluation
 from qdnb.qd import repertoire as rep_lib
-from qdnb.qd.algorithms import MapElites, take
+from qdnb.qd.algorithms import PolicyMapElites
 from qdnb.qd.novelty import NoveltyArchive
 from qdnb.rl.buffer import ReplayBuffer
-from qdnb.rl.networks import MLP
 from qdnb.rl.td3 import TD3, TD3Config, TD3State
 
 UPDATES = ("alternate", "sum", "diversity", "quality")
+
 
 def update_kinds(key: jax.Array, num_actors: int, update: str) -> jax.Array:
     """Per actor, True for a diversity update and False for a quality one.
@@ -78,7 +77,7 @@ class QDPGState:
 
 
 @dataclass(frozen=True, eq=False)
-class QDPG(MapElites):
+class QDPG(PolicyMapElites):
     """QD-PG (Algorithm 4) and its ablations (Table 3.1), on a MAP-Elites grid
     (``centroids``: the grid's cell centres).  ``batch_size`` is the number of
     actors updated and evaluated per iteration."""
@@ -97,7 +96,8 @@ class QDPG(MapElites):
         if self.update not in UPDATES:
             raise ValueError(f"unknown update {self.update!r}; valid: {', '.join(UPDATES)}")
 
-    start = None  # QD-PG evaluates its initial batch in ``init`` (run_seeds then compiles init and step)
+    # QD-PG evaluates its initial batch in ``init`` (run_seeds then compiles init and step)
+    start = None
 
     @property
     def td3(self) -> TD3:
@@ -126,10 +126,14 @@ class QDPG(MapElites):
         params = self.random_policies(k_init)
         repertoire, ev = self.evaluate_and_insert(self.empty_archive(params), params, k_eval)
         env = self.env
-        buffer = ReplayBuffer.create(self.buffer_size, env.observation_size, env.action_size, env.descriptor_size)
+        buffer = ReplayBuffer.create(
+            self.buffer_size, env.observation_size, env.action_size, env.descriptor_size
+        )
         archive = NoveltyArchive.create(self.archive_size, env.descriptor_size)
         buffer, archive = self._record(buffer, archive, ev)
-        return QDPGState(repertoire, self.td3.init(k_q), self.td3.init(k_d), buffer, archive, key), ev
+        return QDPGState(
+            repertoire, self.td3.init(k_q), self.td3.init(k_d), buffer, archive, key
+        ), ev
 
     def train_critics(self, state: QDPGState, key: jax.Array) -> tuple[TD3State, TD3State]:
         """Train the critics the variant uses for ``num_critic_steps`` steps each
@@ -139,9 +143,13 @@ class QDPG(MapElites):
         q_critic, d_critic = state.q_critic, state.d_critic
         if self.update in ("alternate", "quality", "sum"):
             kind = "sum" if self.update == "sum" else "quality"
-            q_critic, _ = td3.train_critic(q_critic, state.buffer, k_q, self.num_critic_steps, rewards(kind))
+            q_critic, _ = td3.train_critic(
+                q_critic, state.buffer, k_q, self.num_critic_steps, rewards(kind)
+            )
         if self.update in ("alternate", "diversity"):
-            d_critic, _ = td3.train_critic(d_critic, state.buffer, k_d, self.num_critic_steps, rewards("diversity"))
+            d_critic, _ = td3.train_critic(
+                d_critic, state.buffer, k_d, self.num_critic_steps, rewards("diversity")
+            )
         return q_critic, d_critic
 
     def mutate(self, state: QDPGState, parents: Any, diversity: jax.Array, key: jax.Array) -> Any:
@@ -150,7 +158,9 @@ class QDPG(MapElites):
         td3 = self.td3
 
         def one(actor, use_d, k):
-            critic = jax.tree.map(lambda q, d: jnp.where(use_d, d, q), state.q_critic.critic, state.d_critic.critic)
+            critic = jax.tree.map(
+                lambda q, d: jnp.where(use_d, d, q), state.q_critic.critic, state.d_critic.critic
+            )
             return td3.policy_gradient_steps(actor, critic, state.buffer, k, self.num_pg_steps)
 
         return jax.vmap(one)(parents, diversity, jax.random.split(key, self.batch_size))
@@ -167,57 +177,3 @@ class QDPG(MapElites):
 
     def metrics(self, state: QDPGState) -> dict[str, jax.Array]:
         return {**super().metrics(state), "archive_size": state.archive.size}
-
-
-@struct.dataclass
-class TD3AgentState:
-    td3: TD3State
-    buffer: ReplayBuffer
-    performance: jax.Array  # fitness of the last greedy episode
-    key: jax.Array
-
-
-@dataclass(frozen=True, eq=False)
-class TD3Agent:
-    """The TD3 baseline (Table 3.4): one actor and its twin critic.
-
-    Each iteration the critic (and, every ``policy_delay`` steps, the actor)
-    trains for ``num_critic_steps`` steps on the replay buffer, then the actor
-    plays ``num_episodes`` episodes: the first greedy (its performance), the
-    others with Gaussian exploration noise, all of them stored.
-    """
-
-    env: Env
-    network: MLP
-    td3_config: TD3Config = TD3Config()
-    num_episodes: int = 4
-    num_critic_steps: int = 100
-    exploration_noise: float = 0.1
-    buffer_size: int = 1_000_000
-
-    @property
-    def td3(self) -> TD3:
-        return TD3(self.network, self.env.observation_size, self.env.action_size, self.td3_config)
-
-    def _play(self, td3_state: TD3State, buffer: ReplayBuffer, key: jax.Array):
-        actors = jax.tree.map(lambda x: jnp.repeat(x[None], self.num_episodes, axis=0), td3_state.actor)
-        noise = jnp.full((self.num_episodes,), self.exploration_noise).at[0].set(0.0)
-        ev = evaluate_policies(self.env, self.network.apply, actors, key, True, noise)
-        return buffer.add_episodes(ev.trajectory, ev.fitness.ndim), ev
-
-    def init(self, key: jax.Array) -> tuple[TD3AgentState, Evaluation]:
-        k_init, k_eval, key = jax.random.split(key, 3)
-        env = self.env
-        td3_state = self.td3.init(k_init)
-        buffer = ReplayBuffer.create(self.buffer_size, env.observation_size, env.action_size)
-        buffer, ev = self._play(td3_state, buffer, k_eval)
-        return TD3AgentState(td3_state, buffer, ev.fitness[0], key), ev
-
-    def step(self, state: TD3AgentState) -> tuple[TD3AgentState, Evaluation]:
-        key, k_train, k_eval = jax.random.split(state.key, 3)
-        td3_state, _ = self.td3.train_critic(state.td3, state.buffer, k_train, self.num_critic_steps)
-        buffer, ev = self._play(td3_state, state.buffer, k_eval)
-        return TD3AgentState(td3_state, buffer, ev.fitness[0], key), ev
-
-    def metrics(self, state: TD3AgentState) -> dict[str, jax.Array]:
-        return {"max_fitness": state.performance}

@@ -81,7 +81,16 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-RANGE_FIELDS = ("R_range", "r_range", "h_range", "a_range", "b_range", "w_range", "mu_range", "sigma_range")
+RANGE_FIELDS = (
+    "R_range",
+    "r_range",
+    "h_range",
+    "a_range",
+    "b_range",
+    "w_range",
+    "mu_range",
+    "sigma_range",
+)
 MIX_RULES = ("stoch", "stoch_fresh")
 P0_RULES = ("patch", "cell")
 BORDERS = ("wall", "torus")
@@ -136,26 +145,41 @@ class FlowLeniaConfig:
         if not isinstance(self.steps, (int, np.integer)) or self.steps < 0:
             raise ValueError(f"steps must be a non-negative integer, got {self.steps!r}")
         if self.channels != 1:
-            raise ValueError(f"only single-channel Flow Lenia is implemented (channels=1), got {self.channels}")
+            raise ValueError(
+                f"only single-channel Flow Lenia is implemented (channels=1), got {self.channels}"
+            )
         if self.patch_size > min(self.height, self.width):
-            raise ValueError(f"patch_size {self.patch_size} is larger than the {self.height}x{self.width} grid")
+            raise ValueError(
+                f"patch_size {self.patch_size} is larger than the {self.height}x{self.width} grid"
+            )
         for name, valid in (("mix", MIX_RULES), ("p0", P0_RULES), ("border", BORDERS)):
             if getattr(self, name) not in valid:
-                raise ValueError(f"unknown {name} {getattr(self, name)!r}; valid: {', '.join(valid)}")
+                raise ValueError(
+                    f"unknown {name} {getattr(self, name)!r}; valid: {', '.join(valid)}"
+                )
         for name in ("dt", "s", "n", "theta_A", "radius_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
         if not self.dt <= 1:
-            raise ValueError(f"dt must be at most 1 (matter moves at most dt (reach - s) per step), got {self.dt!r}")
+            raise ValueError(
+                "dt must be at most 1 (matter moves at most dt (reach - s) per step), got "
+                f"{self.dt!r}"
+            )
         if self.radius_offset < 0 or self.mass_epsilon < 0:
-            raise ValueError(f"radius_offset and mass_epsilon must be non-negative, got {self.radius_offset!r} "
-                             f"and {self.mass_epsilon!r}")
+            raise ValueError(
+                f"radius_offset and mass_epsilon must be non-negative, got {self.radius_offset!r} "
+                f"and {self.mass_epsilon!r}"
+            )
         if self.reach < self.s:
-            raise ValueError(f"reach ({self.reach}) must be at least s ({self.s}): the flow bound "
-                             f"reach - s would be negative")
+            raise ValueError(
+                f"reach ({self.reach}) must be at least s ({self.s}): the flow bound "
+                f"reach - s would be negative"
+            )
         if 2 * self.reach + 1 > min(self.height, self.width):
-            raise ValueError(f"the reintegration neighbourhood (2 * reach + 1 = {2 * self.reach + 1} cells) "
-                             f"does not fit in the {self.height}x{self.width} grid")
+            raise ValueError(
+                f"the reintegration neighbourhood (2 * reach + 1 = {2 * self.reach + 1} cells) "
+                f"does not fit in the {self.height}x{self.width} grid"
+            )
         for name in RANGE_FIELDS:
             low, high = getattr(self, name)
             if not low <= high:
@@ -181,17 +205,26 @@ class FlowLeniaConfig:
 
     def describe(self) -> dict[str, str]:
         """The world's rules as used, in words (``summary.json``'s ``world``)."""
-        mixing = {"stoch": f"categorical, probability proportional to the incoming matter, fixed key {self.mix_seed}",
-                  "stoch_fresh": "categorical, probability proportional to the incoming matter, fresh key every step"}
-        return {"mixing": mixing[self.mix],
-                "p0": {"patch": "one uniform h vector for the whole patch",
-                       "cell": "an independent uniform h vector per cell"}[self.p0],
-                "flow_bound": f"F and dt F clipped per axis to reach - s = {self.flow_bound:g}: "
-                              f"at most {self.max_displacement:.3g} cells per step",
-                "kernels": f"radius {self.radius_scale:g} (R + {self.radius_offset:g}) r, rings b exp(-(D - a)^2 / w), "
-                           f"edge sigmoid(-10 (D - 1))",
-                "alpha": f"clip((A / {self.theta_A:g})^{self.n:g}, 0, 1)",
-                "border": self.border}
+        mixing = {
+            "stoch": "categorical, probability proportional to the incoming matter, fixed key "
+            f"{self.mix_seed}",
+            "stoch_fresh": "categorical, probability proportional to the incoming matter, fresh "
+            "key every step",
+        }
+        return {
+            "mixing": mixing[self.mix],
+            "p0": {
+                "patch": "one uniform h vector for the whole patch",
+                "cell": "an independent uniform h vector per cell",
+            }[self.p0],
+            "flow_bound": f"F and dt F clipped per axis to reach - s = {self.flow_bound:g}: "
+            f"at most {self.max_displacement:.3g} cells per step",
+            "kernels": f"radius {self.radius_scale:g} (R + {self.radius_offset:g}) r, rings b "
+            "exp(-(D - a)^2 / w), "
+            f"edge sigmoid(-10 (D - 1))",
+            "alpha": f"clip((A / {self.theta_A:g})^{self.n:g}, 0, 1)",
+            "border": self.border,
+        }
 
 
 @struct.dataclass
@@ -223,6 +256,7 @@ class State:
 
 # ----- Lenia: kernels, growth, affinity -----
 
+
 def torus_distances(height: int, width: int) -> jax.Array:
     """Distance of every cell to cell ``(0, 0)`` on the ``height x width`` torus."""
     rows, cols = np.arange(height), np.arange(width)
@@ -231,8 +265,17 @@ def torus_distances(height: int, width: int) -> jax.Array:
     return jnp.asarray(np.sqrt(dy**2 + dx**2), dtype=jnp.float32)
 
 
-def kernel_fields(R: jax.Array, r: jax.Array, a: jax.Array, b: jax.Array, w: jax.Array,
-                  height: int, width: int, offset: float = 15.0, scale: float = 1.0) -> jax.Array:
+def kernel_fields(
+    R: jax.Array,
+    r: jax.Array,
+    a: jax.Array,
+    b: jax.Array,
+    w: jax.Array,
+    height: int,
+    width: int,
+    offset: float = 15.0,
+    scale: float = 1.0,
+) -> jax.Array:
     """Kernels of concentric rings (Section 5.2, as Plantec et al.'s code builds them),
     centred on cell ``(0, 0)``.
 
@@ -270,10 +313,19 @@ def sample_system(key: jax.Array, cfg: FlowLeniaConfig) -> System:
     a = uniform(ka, (k, cfg.rings), cfg.a_range)
     b = uniform(kb, (k, cfg.rings), cfg.b_range)
     w = uniform(kw, (k, cfg.rings), cfg.w_range)
-    fields = kernel_fields(R, r, a, b, w, cfg.height, cfg.width, cfg.radius_offset, cfg.radius_scale)
-    return System(R=R, r=r, a=a, b=b, w=w, mu=uniform(kmu, (k,), cfg.mu_range),
-                  sigma=uniform(ksig, (k,), cfg.sigma_range),
-                  kernels_fft=jnp.fft.rfft2(fields, axes=(0, 1)))
+    fields = kernel_fields(
+        R, r, a, b, w, cfg.height, cfg.width, cfg.radius_offset, cfg.radius_scale
+    )
+    return System(
+        R=R,
+        r=r,
+        a=a,
+        b=b,
+        w=w,
+        mu=uniform(kmu, (k,), cfg.mu_range),
+        sigma=uniform(ksig, (k,), cfg.sigma_range),
+        kernels_fft=jnp.fft.rfft2(fields, axes=(0, 1)),
+    )
 
 
 def initial_patches(key: jax.Array, cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
@@ -284,8 +336,10 @@ def initial_patches(key: jax.Array, cfg: FlowLeniaConfig) -> tuple[jax.Array, ja
     ka, kp = jax.random.split(key)
     p = cfg.patch_size
     shape = (cfg.kernels,) if cfg.p0 == "patch" else (p, p, cfg.kernels)
-    return (jax.random.uniform(ka, (p, p, cfg.channels)),
-            jax.random.uniform(kp, shape, minval=cfg.h_range[0], maxval=cfg.h_range[1]))
+    return (
+        jax.random.uniform(ka, (p, p, cfg.channels)),
+        jax.random.uniform(kp, shape, minval=cfg.h_range[0], maxval=cfg.h_range[1]),
+    )
 
 
 def initial_state(key: jax.Array, cfg: FlowLeniaConfig) -> State:
@@ -300,13 +354,25 @@ def place_patch(patch_a: jax.Array, patch_p: jax.Array, cfg: FlowLeniaConfig) ->
     (``(p, p, |K|)``, or ``(|K|,)`` for one vector on the whole patch) in the centre of
     an empty grid (``p = patch_size``)."""
     p = cfg.patch_size
-    if patch_a.shape != (p, p, cfg.channels) or patch_p.shape not in ((p, p, cfg.kernels), (cfg.kernels,)):
-        raise ValueError(f"patches of shapes {patch_a.shape} and {patch_p.shape} do not match "
-                         f"({p}, {p}, {cfg.channels}) and ({p}, {p}, {cfg.kernels}) or ({cfg.kernels},)")
+    if patch_a.shape != (p, p, cfg.channels) or patch_p.shape not in (
+        (p, p, cfg.kernels),
+        (cfg.kernels,),
+    ):
+        raise ValueError(
+            f"patches of shapes {patch_a.shape} and {patch_p.shape} do not match "
+            f"({p}, {p}, {cfg.channels}) and ({p}, {p}, {cfg.kernels}) or ({cfg.kernels},)"
+        )
     top, left = (cfg.height - p) // 2, (cfg.width - p) // 2
-    A = jnp.zeros((cfg.height, cfg.width, cfg.channels)).at[top:top + p, left:left + p].set(patch_a)
-    P = jnp.zeros((cfg.height, cfg.width, cfg.kernels)).at[top:top + p, left:left + p].set(
-        jnp.broadcast_to(patch_p, (p, p, cfg.kernels)))
+    A = (
+        jnp.zeros((cfg.height, cfg.width, cfg.channels))
+        .at[top : top + p, left : left + p]
+        .set(patch_a)
+    )
+    P = (
+        jnp.zeros((cfg.height, cfg.width, cfg.kernels))
+        .at[top : top + p, left : left + p]
+        .set(jnp.broadcast_to(patch_p, (p, p, cfg.kernels)))
+    )
     return State(A=A, P=P)
 
 
@@ -350,6 +416,7 @@ def sobel(x: jax.Array, wrap: bool = True) -> jax.Array:
     Unnormalised filters ``[1, 2, 1] x [1, 0, -1]`` as in Flow Lenia's code: on a
     linear field they give 8 times the slope.
     """
+
     def smooth(z, axis):
         return shift(z, 1, axis, wrap) + 2.0 * z + shift(z, -1, axis, wrap)
 
@@ -380,13 +447,18 @@ def displacement(F: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
     if cfg.border == "torus":
         return disp
     height, width = F.shape[:2]
-    pos = jnp.stack(jnp.meshgrid(jnp.arange(height, dtype=F.dtype), jnp.arange(width, dtype=F.dtype),
-                                 indexing="ij"), axis=-1)[:, :, None, :]  # (H, W, 1, 2)
+    pos = jnp.stack(
+        jnp.meshgrid(
+            jnp.arange(height, dtype=F.dtype), jnp.arange(width, dtype=F.dtype), indexing="ij"
+        ),
+        axis=-1,
+    )[:, :, None, :]  # (H, W, 1, 2)
     top = jnp.array([height, width], F.dtype) - 0.5 - cfg.s
     return jnp.clip(pos + disp, cfg.s - 0.5, top) - pos
 
 
 # ----- reintegration tracking -----
+
 
 def overlap(i: jax.Array, x: jax.Array, s: float) -> jax.Array:
     """Length of ``[x - s, x + s]`` inside the unit cell ``[i - 1/2, i + 1/2]``."""
@@ -437,15 +509,17 @@ def _mixing_score(parcel: jax.Array, sent: jax.Array, gumbel: jax.Array) -> jax.
     return jnp.where(sent, jnp.log(jnp.where(sent, parcel, 1.0)) + gumbel, -jnp.inf)
 
 
-def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
-                cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
+def reintegrate(
+    A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array, cfg: FlowLeniaConfig
+) -> tuple[jax.Array, jax.Array]:
     """Reintegration tracking with sampling of ``P`` (Sections 5.2 and 5.3).
 
     ``A^{t+dt}(p) = sum_q A(q) I(q, p)`` with ``I(q, p)`` the fraction of the square
     of half-side ``s`` centred on ``q + disp(q)`` inside cell ``p``; the new
     ``P(p)`` is ``P(q)`` for a sender ``q`` drawn with probability proportional to
     the parcel ``A(q) I(q, p)`` (Gumbel-max on its log, noise from ``key``), and 0
-    where less than ``mass_epsilon`` arrives.  ``A`` ``(H, W, 1)``, ``P`` ``(H, W, |K|)``, ``disp`` ``(H, W, 1, 2)``.
+    where less than ``mass_epsilon`` arrives.  ``A`` ``(H, W, 1)``, ``P`` ``(H, W, |K|)``, ``disp``
+    ``(H, W, 1, 2)``.
 
     Each sender covers ``slots x slots`` cells starting at ``first_cell`` per axis;
     its parcels are scatter-added to them (9 per cell instead of 121 gathers).
@@ -467,14 +541,19 @@ def reintegrate(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
     score = _mixing_score(parcels, sent, _noise(key, cfg).reshape(-1))
     best = jnp.full(n, -jnp.inf, score.dtype).at[target].max(score)
     pair = jnp.arange(score.shape[0], dtype=jnp.int32)
-    winner = jnp.full(n, -1, jnp.int32).at[target].max(jnp.where(sent & (score == best[target]), pair, -1))
+    winner = (
+        jnp.full(n, -1, jnp.int32)
+        .at[target]
+        .max(jnp.where(sent & (score == best[target]), pair, -1))
+    )
     keep = (winner >= 0) & (new_a > cfg.mass_epsilon)
     new_p = jnp.where(keep[:, None], P.reshape(n, -1)[winner % n], 0.0)
     return new_a.reshape(A.shape), new_p.reshape(P.shape)
 
 
-def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array,
-                          cfg: FlowLeniaConfig) -> tuple[jax.Array, jax.Array]:
+def reintegrate_reference(
+    A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.Array, cfg: FlowLeniaConfig
+) -> tuple[jax.Array, jax.Array]:
     """``reintegrate`` by gathering the full ``(2 reach + 1)^2`` neighbourhood of every
     cell (Plantec et al.'s scheme): slower, for checks and benchmarks.
 
@@ -491,7 +570,9 @@ def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.
     base_x, weight_x = axis_weights(dx, cfg.s, k)
     base = jnp.stack([base_y, base_x]).astype(jnp.int32)
     noise = _noise(key, cfg).reshape(k * k, *a.shape)
-    offsets = jnp.array([(oy, ox) for oy in range(-d, d + 1) for ox in range(-d, d + 1)], dtype=jnp.int32)
+    offsets = jnp.array(
+        [(oy, ox) for oy in range(-d, d + 1) for ox in range(-d, d + 1)], dtype=jnp.int32
+    )
 
     def receive(carry, offset):
         total, best, best_p = carry
@@ -523,6 +604,7 @@ def reintegrate_reference(A: jax.Array, P: jax.Array, disp: jax.Array, key: jax.
 
 # ----- simulation -----
 
+
 def mixing_key(key: jax.Array, cfg: FlowLeniaConfig) -> jax.Array:
     """The key of a step's parameter draw: the world's fixed key (``mix = "stoch"``,
     so ``key`` is unused and episodes are deterministic) or ``key`` itself
@@ -539,8 +621,9 @@ def step(system: System, state: State, key: jax.Array, cfg: FlowLeniaConfig) -> 
 
 
 @partial(jax.jit, static_argnames=("cfg", "steps"))
-def rollout(system: System, state: State, key: jax.Array, cfg: FlowLeniaConfig,
-            steps: int | None = None) -> State:
+def rollout(
+    system: System, state: State, key: jax.Array, cfg: FlowLeniaConfig, steps: int | None = None
+) -> State:
     """An episode of ``steps`` (default ``cfg.steps``) steps: states stacked
     ``(T + 1, ...)``, the initial state first."""
     steps = cfg.steps if steps is None else steps
@@ -562,8 +645,9 @@ def simulate_batch(key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> tuple[Sy
     k_sys, k_init, k_run = jax.random.split(key, 3)
     systems = jax.vmap(sample_system, in_axes=(0, None))(jax.random.split(k_sys, batch), cfg)
     states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
-    episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(systems, states,
-                                                                    jax.random.split(k_run, batch))
+    episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(
+        systems, states, jax.random.split(k_run, batch)
+    )
     return systems, episodes
 
 

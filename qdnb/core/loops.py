@@ -33,8 +33,11 @@ def scan_in_chunks(
     includes compilation) is appended to it.
     """
     if num_steps < 1 or chunk_size < 1:
-        raise ValueError(f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}")
+        raise ValueError(
+            f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}"
+        )
     if num_steps % chunk_size == 0:
+
         @jax.jit
         def chunk(c):
             return jax.lax.scan(lambda c, _: step(c), c, None, length=chunk_size)
@@ -45,7 +48,9 @@ def scan_in_chunks(
         skip = lambda c: (c, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape))
 
         def masked(c, n):
-            return jax.lax.scan(lambda c, i: jax.lax.cond(i < n, step, skip, c), c, jnp.arange(chunk_size))
+            return jax.lax.scan(
+                lambda c, i: jax.lax.cond(i < n, step, skip, c), c, jnp.arange(chunk_size)
+            )
 
         chunk = jax.jit(masked)
 
@@ -69,8 +74,9 @@ def scan_in_chunks(
     return carry, jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
 
 
-def map_concurrently(fn: Callable[[str], Any], names: tuple[str, ...] | list[str],
-                     concurrent: bool = True) -> dict[str, Any]:
+def map_concurrently(
+    fn: Callable[[str], Any], names: tuple[str, ...] | list[str], concurrent: bool = True
+) -> dict[str, Any]:
     """``{name: fn(name)}``, the calls in one thread each unless ``concurrent`` is
     false.  For runs that share nothing (one per environment): XLA compiles and
     runs small programs on about one core each, so two such runs on two cores take

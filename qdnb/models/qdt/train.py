@@ -16,26 +16,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
-from qdnb.qdt.data import Trajectories
-from qdnb.qdt.model import QDT, init_params
+from qdnb.models.qdt.data import Trajectories
+from qdnb.models.qdt.model import QDT, init_params
+from qdnb.nets.transformer import make_optimizer
 
 
-def loss_fn(model: QDT, params: Any, batch: Trajectories, key: jax.Array | None = None) -> jax.Array:
+def loss_fn(
+    model: QDT, params: Any, batch: Trajectories, key: jax.Array | None = None
+) -> jax.Array:
     """Mean over valid steps of the squared error of the predicted actions
     (averaged over action dimensions); dropout is on when a ``key`` is given."""
     rngs = None if key is None else {"dropout": key}
-    pred = model.apply(params, batch.bd, batch.obs, batch.actions, deterministic=key is None, rngs=rngs)
+    pred = model.apply(
+        params, batch.bd, batch.obs, batch.actions, deterministic=key is None, rngs=rngs
+    )
     err = jnp.mean((pred - batch.actions) ** 2, axis=-1)
     valid = batch.valid.astype(err.dtype)
     return jnp.sum(err * valid) / jnp.maximum(jnp.sum(valid), 1.0)
-
-
-def make_optimizer(learning_rate: float) -> optax.GradientTransformation:
-    """Adam with gradient clipping (global norm 1), as Decision-Transformer-style
-    training does; the learning rate is Table 4.3's."""
-    return optax.chain(optax.clip_by_global_norm(1.0), optax.adam(learning_rate))
 
 
 def make_train_step(model: QDT, optimizer: optax.GradientTransformation):
@@ -59,9 +58,19 @@ class TrainResult:
     evaluations: list[dict[str, Any]] = field(default_factory=list)  # {"epoch", **scores}
 
 
-def fit(model: QDT, data: Trajectories, key: jax.Array, epochs: int, batch_size: int, learning_rate: float,
-        eval_every: int, evaluate: Callable[[Any, int], dict[str, Any]], step=None, progress: bool = True,
-        desc: str = "QDT") -> TrainResult:
+def fit(
+    model: QDT,
+    data: Trajectories,
+    key: jax.Array,
+    epochs: int,
+    batch_size: int,
+    learning_rate: float,
+    eval_every: int,
+    evaluate: Callable[[Any, int], dict[str, Any]],
+    step=None,
+    progress: bool = True,
+    desc: str = "QDT",
+) -> TrainResult:
     """Train on ``data`` for ``epochs`` epochs and call ``evaluate(params, epoch)``
     after every ``eval_every`` epochs; ``evaluate`` returns scores with an
     ``avg_distance`` (lower is better).
@@ -72,7 +81,9 @@ def fit(model: QDT, data: Trajectories, key: jax.Array, epochs: int, batch_size:
     shape, and ``step`` (from ``make_train_step``) compiles once for all the
     datasets of an environment when it is shared."""
     if epochs < 1 or eval_every < 1 or epochs % eval_every:
-        raise ValueError(f"epochs ({epochs}) must be a positive multiple of eval_every ({eval_every})")
+        raise ValueError(
+            f"epochs ({epochs}) must be a positive multiple of eval_every ({eval_every})"
+        )
     if data.size == 0:
         raise ValueError("the dataset is empty")
     k_init, k_train = jax.random.split(key)

@@ -1,0 +1,87 @@
+"""The book's chapters, in reading order: one entry each.
+
+A chapter is a notebook ``notebooks/<name>.ipynb`` and a module
+``qdnb.chapters.<name>`` holding its ``Config``, its ``SCALES`` (``tiny``,
+``small``, ``paper``), its ``METHODS`` and its experiment.  This registry serves
+the runner (``python -m qdnb``), the book's table of contents, the status table
+of the intro page and the notebook tests; adding a chapter is one entry here plus
+its notebook and module.
+
+Importing it loads no JAX: a chapter's module (and its configs) is imported only
+when asked for (``Chapter.module``, ``config``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+from qdnb.core import paths
+from qdnb.core.config import check_scale
+
+
+@dataclass(frozen=True)
+class Chapter:
+    name: str  # the notebook's stem and the chapter module's name
+    title: str
+
+    @property
+    def notebook(self) -> Path:
+        return paths.NOTEBOOKS / f"{self.name}.ipynb"
+
+    @property
+    def module(self) -> ModuleType:
+        return importlib.import_module(f"qdnb.chapters.{self.name}")
+
+    @property
+    def config_class(self) -> type:
+        return self.module.Config
+
+    def config(self, scale: str):
+        """The chapter's frozen config at ``scale``."""
+        return self.module.SCALES[check_scale(scale)]
+
+
+CHAPTERS: tuple[Chapter, ...] = (
+    Chapter("ch2_primer", "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)"),
+    Chapter("ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap"),
+    Chapter(
+        "ch4_reproducibility", "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni"
+    ),
+    Chapter("ch4_qdt", "Chapter 4: the Quality-Diversity Transformer"),
+    Chapter("ch5_flow_lenia", "Chapter 5: the Flow Lenia Transformer"),
+)
+
+
+def names() -> list[str]:
+    return [c.name for c in CHAPTERS]
+
+
+def chapter(name: str) -> Chapter:
+    for c in CHAPTERS:
+        if c.name == name:
+            return c
+    raise ValueError(f"unknown chapter {name!r}; valid chapters: {', '.join(names())}")
+
+
+def config(name: str, scale: str):
+    """The frozen config of chapter ``name`` at ``scale`` (``tiny``, ``small`` or
+    ``paper``); a clear ``ValueError`` on an unknown name or scale, before any compute."""
+    chap = chapter(name)
+    check_scale(scale)
+    return chap.config(scale)
+
+
+def toc() -> str:
+    """The book's ``_toc.yml``: the intro, one page per chapter, the references."""
+    lines = [
+        "# Written by `python -m qdnb book` from qdnb.book.registry.CHAPTERS.",
+        "format: jb-book",
+        "root: intro",
+        "chapters:",
+    ]
+    lines += [f"  - file: chapters/{c.name}" for c in CHAPTERS]
+    lines += ["  - file: references"]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,572 @@
+"""Chapter 3's experiment: QD-PG, its ablations, TD3 and PGA-ME on one environment.
+
+``run_environment(cfg, env_name, key)`` runs every method of the config on the
+same environment-step budget (each method's seeds at once, ``vmap``), and
+returns, per method, the history of every iteration (performance, grid
+coverage, environment steps, every evaluated policy's descriptor and fitness)
+and the final MAP-Elites grids.
+
+Performance follows Table 3.4: the episode return on Point-Maze and Ant-Trap,
+the best reward of the episode (minus the closest distance to the goal) on
+Ant-Maze.  For the MAP-Elites methods the performance at an iteration is the
+best solution of the grid; for TD3 it is the greedy episode of its actor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from qdnb.core.evaluation import Algorithm
+from qdnb.envs import make_env
+from qdnb.envs.base import Env
+from qdnb.envs.pointmaze import in_goal
+from qdnb.envs.rollout import evaluate_policies
+from qdnb.nets.mlp import MLP
+from qdnb.qd.adaptation import bayes_opt, random_goals, random_search, reach_scores
+from qdnb.qd.algorithms import run_seeds
+from qdnb.qd.cvt import grid_centroids
+from qdnb.qd.metrics import grid_cell
+from qdnb.qd.pga import PGAMapElites
+from qdnb.qd.qdpg import QDPG
+from qdnb.rl.agents import TD3Agent
+from qdnb.rl.td3 import TD3Config
+
+
+@dataclass(frozen=True)
+class QDPGTask:
+    """Per-environment settings of Chapter 3 (Table 3.2 at ``paper`` scale).
+
+    ``num_steps`` is the environment-step budget of every method; each iteration
+    plays ``num_actors`` episodes of ``episode_length`` steps at most, so a run
+    has ``num_steps // (num_actors * episode_length)`` iterations.  Per
+    iteration each critic in use takes ``num_critic_steps`` TD3 steps and each
+    actor ``num_pg_steps`` actor steps; at ``paper`` scale both are Table 3.2's
+    gradient-steps ratio times the episode length (4 x 200 on Point-Maze,
+    0.1 x 3000 on the ants).  ``learning_rate`` drives the critics and their
+    greedy actors, ``mutation_learning_rate`` the policy-gradient mutations of
+    the population (Table 3.2 gives one rate for both; QDax uses 3e-4 and
+    1e-3).  The state-descriptor archive admits a state whose mean distance to
+    its K nearest neighbours exceeds ``archive_threshold`` (Section 3.6.3) and
+    holds ``archive_size`` of them (FIFO).
+    """
+
+    num_steps: int
+    episode_length: int
+    num_actors: int
+    bins: int
+    policy_hidden: tuple[int, ...]
+    critic_hidden: tuple[int, ...]
+    optimizer: str
+    learning_rate: float
+    buffer_size: int
+    num_critic_steps: int
+    num_pg_steps: int
+    archive_threshold: float
+    mutation_learning_rate: float
+    archive_size: int = 10_000
+
+    @property
+    def num_iterations(self) -> int:
+        return self.num_steps // (self.num_actors * self.episode_length)
+
+
+POINTMAZE_PAPER = QDPGTask(
+    num_steps=1_000_000,
+    episode_length=200,
+    num_actors=4,
+    bins=5,
+    policy_hidden=(64, 32),
+    critic_hidden=(64, 32),
+    optimizer="sgd",
+    learning_rate=6e-3,
+    buffer_size=1_000_000,
+    num_critic_steps=800,
+    num_pg_steps=800,
+    archive_threshold=1e-4,
+    mutation_learning_rate=6e-3,
+)
+ANT_PAPER = QDPGTask(
+    num_steps=100_000_000,
+    episode_length=3000,
+    num_actors=10,
+    bins=7,
+    policy_hidden=(256, 256),
+    critic_hidden=(256, 256),
+    optimizer="sgd",
+    learning_rate=3e-4,
+    buffer_size=500_000,
+    num_critic_steps=300,
+    num_pg_steps=300,
+    archive_threshold=0.1,
+    mutation_learning_rate=3e-4,
+)
+
+# Ant-Maze and Ant-Trap share their settings below `paper` (Table 3.2 groups them too).
+ANT_TINY = dataclasses.replace(
+    ANT_PAPER,
+    num_steps=1_500,
+    episode_length=50,
+    policy_hidden=(16, 16),
+    critic_hidden=(32, 32),
+    optimizer="adam",
+    learning_rate=1e-3,
+    mutation_learning_rate=1e-3,
+    buffer_size=10_000,
+    num_critic_steps=10,
+    num_pg_steps=10,
+)
+ANT_SMALL = dataclasses.replace(
+    ANT_PAPER,
+    num_steps=55_000,
+    episode_length=500,
+    policy_hidden=(64, 64),
+    critic_hidden=(64, 64),
+    optimizer="adam",
+    learning_rate=3e-4,
+    mutation_learning_rate=1e-3,
+    buffer_size=55_000,
+    num_critic_steps=50,
+    num_pg_steps=50,
+)
+
+
+@dataclass(frozen=True)
+class QDPGConfig:
+    """Chapter 3: QD-PG, its ablations, TD3 and PGA-ME on Point-Maze, Ant-Maze and
+    Ant-Trap (Table 3.2 at ``paper`` scale), and the fast-adaptation search.
+
+    ``ant_methods`` are the methods run on the two ant mazes (every method runs
+    on Point-Maze).  PGA-ME uses the same networks, buffer and gradient steps as
+    QD-PG, and iso+line variation for its genetic half.  Every method runs on
+    ``num_seeds`` seeds, except QD-PG on Point-Maze, which runs on
+    ``pointmaze_qdpg_seeds`` when it is set (more seeds for the method whose
+    claims the chapter checks, where the budget allows no more for all).
+    """
+
+    num_seeds: int
+    chunk_size: int
+    pointmaze: QDPGTask
+    antmaze: QDPGTask
+    anttrap: QDPGTask
+    pointmaze_qdpg_seeds: int | None = None
+    ant_methods: tuple[str, ...] = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")
+    archive_k: int = 10
+    td3_batch_size: int = 256
+    discount: float = 0.99
+    tau: float = 0.005
+    policy_delay: int = 2
+    exploration_noise: float = 0.1
+    iso_sigma: float = 0.005
+    line_sigma: float = 0.05
+    adaptation_goals: int = 100
+    adaptation_budget: int = 20
+
+    def __post_init__(self):
+        for name in ("pointmaze", "antmaze", "anttrap"):
+            task = getattr(self, name)
+            if task.num_iterations < 1:
+                raise ValueError(
+                    f"{name}: a budget of {task.num_steps} steps is less than one iteration "
+                    f"({task.num_actors} actors x {task.episode_length} steps)"
+                )
+            if task.optimizer not in ("adam", "sgd"):
+                raise ValueError(f"{name}: unknown optimizer {task.optimizer!r}; valid: adam, sgd")
+            if task.num_critic_steps % self.policy_delay:
+                raise ValueError(
+                    f"{name}: num_critic_steps={task.num_critic_steps} must be a multiple of "
+                    f"policy_delay={self.policy_delay}"
+                )
+        unknown = set(self.ant_methods) - set(QDPG_METHODS)
+        if unknown:
+            raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(QDPG_METHODS)}")
+        for name, n in (
+            ("num_seeds", self.num_seeds),
+            ("pointmaze_qdpg_seeds", self.pointmaze_qdpg_seeds),
+        ):
+            if n is not None and n < 1:
+                raise ValueError(f"{name}={n} must be at least 1")
+
+    def task(self, env_name: str) -> QDPGTask:
+        if env_name not in ("pointmaze", "antmaze", "anttrap"):
+            raise ValueError(
+                f"unknown environment {env_name!r}; valid: pointmaze, antmaze, anttrap"
+            )
+        return getattr(self, env_name)
+
+    def methods(self, env_name: str) -> tuple[str, ...]:
+        return QDPG_METHODS if env_name == "pointmaze" else self.ant_methods
+
+    def seeds(self, env_name: str, method: str) -> int:
+        """How many seeds ``method`` runs on ``env_name``."""
+        if env_name == "pointmaze" and method == "QD-PG" and self.pointmaze_qdpg_seeds is not None:
+            return self.pointmaze_qdpg_seeds
+        return self.num_seeds
+
+    def with_seeds(self, num_seeds: int) -> "QDPGConfig":
+        """This config with every method, QD-PG on Point-Maze included, on ``num_seeds`` seeds."""
+        return dataclasses.replace(self, num_seeds=num_seeds, pointmaze_qdpg_seeds=None)
+
+    def with_pointmaze_iterations(self, iterations: int) -> "QDPGConfig":
+        """This config with a Point-Maze budget of ``iterations`` iterations (benchmarks)."""
+        task = self.pointmaze
+        steps = iterations * task.num_actors * task.episode_length
+        return dataclasses.replace(self, pointmaze=dataclasses.replace(task, num_steps=steps))
+
+
+ENVIRONMENTS = ("pointmaze", "antmaze", "anttrap")
+
+
+def make_task_env(cfg: QDPGConfig, env_name: str) -> Env:
+    return make_env(env_name, episode_length=cfg.task(env_name).episode_length)
+
+
+def fitness_offset(env_name: str, env: Env) -> float:
+    """A lower bound of the performance, so that QD scores count every elite
+    positively: the whole episode at the far corner (Point-Maze), the far corner
+    of the maze (Ant-Maze), running backwards at 5 m/s (Ant-Trap)."""
+    span = float(np.linalg.norm(np.asarray(env.descriptor_high) - np.asarray(env.descriptor_low)))
+    return {
+        "pointmaze": -span * env.episode_length,
+        "antmaze": -span,
+        "anttrap": -5.0 * env.episode_length,
+    }[env_name]
+
+
+def _qdpg(update: str) -> Callable[[QDPGConfig, QDPGTask, dict], Algorithm]:
+    def build(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+        return QDPG(
+            **parts["shared"],
+            update=update,
+            td3_config=parts["td3"],
+            num_critic_steps=task.num_critic_steps,
+            num_pg_steps=task.num_pg_steps,
+            buffer_size=task.buffer_size,
+            archive_size=task.archive_size,
+            archive_threshold=task.archive_threshold,
+            archive_k=cfg.archive_k,
+        )
+
+    return build
+
+
+def _pga_me(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    return PGAMapElites(
+        **parts["shared"],
+        td3_config=parts["td3"],
+        num_critic_steps=task.num_critic_steps,
+        num_pg_steps=task.num_pg_steps,
+        buffer_size=task.buffer_size,
+    )
+
+
+def _td3(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    return TD3Agent(
+        env=parts["env"],
+        network=parts["network"],
+        td3_config=parts["td3"],
+        num_episodes=task.num_actors,
+        num_critic_steps=task.num_critic_steps,
+        exploration_noise=cfg.exploration_noise,
+        buffer_size=task.buffer_size,
+    )
+
+
+# name -> builder(cfg, task, shared parts): adding a method is one entry (and its code)
+METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
+    "QD-PG": _qdpg("alternate"),
+    "QD-PG Sum": _qdpg("sum"),
+    "D-PG": _qdpg("diversity"),
+    "Q-PG": _qdpg("quality"),
+    "TD3": _td3,
+    "PGA-ME": _pga_me,
+}
+QDPG_METHODS = tuple(METHODS)  # in Table 3.4's order
+Config = QDPGConfig
+
+
+def build_algorithms(
+    cfg: QDPGConfig, env_name: str, env: Env | None = None
+) -> dict[str, Algorithm]:
+    """Every method of ``cfg`` on ``env_name``, with its Table 3.2 settings."""
+    task = cfg.task(env_name)
+    env = env if env is not None else make_task_env(cfg, env_name)
+    network = MLP(task.policy_hidden + (env.action_size,), activation="relu")
+    td3_config = TD3Config(
+        gamma=cfg.discount,
+        tau=cfg.tau,
+        policy_delay=cfg.policy_delay,
+        critic_lr=task.learning_rate,
+        actor_lr=task.learning_rate,
+        mutation_lr=task.mutation_learning_rate,
+        batch_size=cfg.td3_batch_size,
+        critic_hidden=task.critic_hidden,
+        optimizer=task.optimizer,
+    )
+    centroids = grid_centroids((task.bins, task.bins), env.descriptor_low, env.descriptor_high)
+    shared = dict(
+        env=env,
+        network=network,
+        batch_size=task.num_actors,
+        iso_sigma=cfg.iso_sigma,
+        line_sigma=cfg.line_sigma,
+        centroids=centroids,
+        fitness_offset=fitness_offset(env_name, env),
+    )
+    parts = {"env": env, "network": network, "td3": td3_config, "shared": shared}
+    return {method: METHODS[method](cfg, task, parts) for method in cfg.methods(env_name)}
+
+
+def final_grid(state: Any) -> dict[str, np.ndarray] | None:
+    """The final MAP-Elites grid of a run (leading axis: seeds), on the host."""
+    rep = getattr(state, "repertoire", None)
+    if rep is None:
+        return None
+    return jax.device_get(
+        {
+            "genotypes": rep.genotypes,
+            "fitnesses": rep.fitnesses,
+            "descriptors": rep.descriptors,
+            "centroids": rep.centroids,
+        }
+    )
+
+
+def run_environment(
+    cfg: QDPGConfig,
+    env_name: str,
+    key: jax.Array,
+    progress: bool = True,
+    methods: tuple[str, ...] | None = None,
+) -> dict[str, Any]:
+    """Run every method of ``cfg`` (or those of ``methods``) on ``env_name``,
+    each on ``cfg.seeds(env_name, method)`` seeds.
+
+    Returns ``{"env", "env_name", "methods": {name: {"history", "grid",
+    "final_performance", "coverage", "env_steps", "seconds",
+    "steady_seconds_per_iteration"}}}``; ``history``
+    arrays have shape ``(num_seeds, num_iterations + 1, ...)``.
+    """
+    task = cfg.task(env_name)
+    env = make_task_env(cfg, env_name)
+    algorithms = build_algorithms(cfg, env_name, env)
+    if methods is not None:
+        unknown = set(methods) - set(algorithms)
+        if unknown:
+            raise ValueError(
+                f"methods {sorted(unknown)} are not run on {env_name}; valid: "
+                f"{', '.join(algorithms)}"
+            )
+        algorithms = {m: algorithms[m] for m in methods}
+    out: dict[str, Any] = {"env": env, "env_name": env_name, "methods": {}}
+    for method, algo in algorithms.items():
+        keys = jax.random.split(key, cfg.seeds(env_name, method))
+        start, chunks = time.perf_counter(), []
+        states, _, history = run_seeds(
+            algo,
+            keys,
+            task.num_iterations - 1,
+            cfg.chunk_size,
+            progress=progress,
+            desc=f"{env_name} {method}",
+            chunk_seconds=chunks,
+        )
+        history = jax.device_get(history)
+        seconds = time.perf_counter() - start
+        steps = np.cumsum(history["env_steps"], axis=1)
+        grid = final_grid(states)
+        out["methods"][method] = {
+            "history": history,
+            "grid": grid,
+            "final_performance": history["max_fitness"][:, -1],
+            "coverage": (
+                np.mean(grid["fitnesses"] > -np.inf, axis=1)
+                if grid is not None
+                else grid_coverage(history["descriptors"], env, task.bins)
+            ),
+            "env_steps": steps[:, -1],
+            "cumulative_steps": steps,
+            "seconds": seconds,
+            "steady_seconds_per_iteration": steady_rate(
+                chunks, cfg.chunk_size, seconds / task.num_iterations
+            ),
+        }
+    return out
+
+
+def steady_rate(chunk_seconds: list[float], chunk_size: int, fallback: float) -> float:
+    """Seconds per iteration of a compiled loop: the median full chunk after the
+    first (which compiles) and before the last (which may be partial);
+    ``fallback`` when the loop ran in one chunk."""
+    if len(chunk_seconds) < 2:
+        return fallback
+    return float(np.median(chunk_seconds[1:-1] or chunk_seconds)) / chunk_size
+
+
+def grid_coverage(descriptors: np.ndarray, env: Env, bins: int) -> np.ndarray:
+    """Fraction of the ``bins x bins`` grid cells reached by any evaluated
+    episode, per seed (``descriptors``: seeds x iterations x episodes x 2).  For
+    TD3, which keeps no grid, this is the grid it would have filled."""
+    d = descriptors.reshape(descriptors.shape[0], -1, descriptors.shape[-1])
+    cells = np.asarray(grid_cell(d, (bins, bins), env.descriptor_low, env.descriptor_high))
+    return np.array([len(np.unique(c)) / bins**2 for c in cells])
+
+
+def in_exit_zone(descriptors: np.ndarray) -> np.ndarray:
+    """Whether each Point-Maze final position lies in the exit zone (an episode
+    stops there, so an episode that entered the zone ends in it); the shape of
+    ``descriptors`` without its last axis."""
+    flat = np.asarray(descriptors).reshape(-1, 2)
+    return np.asarray(jax.vmap(in_goal)(flat)).reshape(np.shape(descriptors)[:-1])
+
+
+def reached_goal(descriptors: np.ndarray) -> np.ndarray:
+    """Per seed (leading axis), whether any evaluated Point-Maze episode ended in
+    the exit zone."""
+    return in_exit_zone(descriptors).reshape(np.shape(descriptors)[0], -1).any(axis=1)
+
+
+def steps_to_exit(result: dict[str, Any]) -> np.ndarray:
+    """Per seed, the environment steps a Point-Maze method had used when one of
+    its evaluated episodes first ended in the exit zone (``nan`` if none did);
+    ``result`` is one method's entry of ``run_environment``."""
+    hit = in_exit_zone(result["history"]["descriptors"])  # seeds x iterations x episodes
+    hit = hit.reshape(hit.shape[0], hit.shape[1], -1).any(axis=2)
+    steps = np.asarray(result["cumulative_steps"], float)
+    return np.where(hit.any(axis=1), steps[np.arange(len(steps)), np.argmax(hit, axis=1)], np.nan)
+
+
+# ----- Section 3.7: fast adaptation on Ant-Maze -----
+
+
+@dataclass(frozen=True)
+class FastAdaptation:
+    """QD-PG's final Ant-Maze grid (seed 0) searched for new goals (Figures 3.6, 3.7):
+    ``paths`` (solutions, T, 2) and ``alive`` (solutions, T) of every stored
+    solution's episode; per goal, the best score of Bayesian optimisation and of
+    random search with ``budget`` evaluations, and the exhaustive best."""
+
+    goals: np.ndarray
+    budget: int
+    descriptors: np.ndarray
+    valid: np.ndarray
+    paths: np.ndarray
+    alive: np.ndarray
+    bo_best: np.ndarray
+    rs_best: np.ndarray
+    exhaustive: np.ndarray
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "env": "antmaze",
+            "goals": int(len(self.goals)),
+            "budget": int(self.budget),
+            "mean": float(self.bo_best.mean()),
+            "std": float(self.bo_best.std()),
+            "stored_solutions": int(self.valid.sum()),
+        }
+
+
+def fast_adaptation(cfg: QDPGConfig, antmaze: dict[str, Any], seed: int) -> FastAdaptation:
+    """Section 3.7 on ``antmaze`` (``run_environment``'s result): each stored solution
+    of QD-PG's seed-0 grid plays one recorded episode; ``cfg.adaptation_goals``
+    random goals are scored by the best reward an episode gets for them
+    (``reach_scores``), and Bayesian optimisation over the descriptors picks
+    ``cfg.adaptation_budget`` solutions to try for each goal."""
+    grid, maze = antmaze["methods"]["QD-PG"]["grid"], antmaze["env"]
+    valid = np.isfinite(grid["fitnesses"][0])
+    genotypes = jax.tree.map(lambda x: x[0], grid["genotypes"])
+    network = MLP(cfg.antmaze.policy_hidden + (maze.action_size,), activation="relu")
+    episode = jax.jit(
+        lambda g, k: evaluate_policies(maze, network.apply, g, k, return_trajectory=True)
+    )(genotypes, jax.random.PRNGKey(seed + 1))
+    paths_xy = np.asarray(episode.trajectory["next_state_descriptor"])
+    alive = np.asarray(episode.trajectory["valid"])
+    k_goals, k_bo = jax.random.split(jax.random.PRNGKey(seed + 2))
+    goals = np.asarray(random_goals(k_goals, cfg.adaptation_goals, (-4.5, -4.5), (39.5, 39.5)))
+    scores = jax.vmap(lambda g: reach_scores(paths_xy, g, alive))(goals)  # goals x solutions
+    keys = jax.random.split(k_bo, cfg.adaptation_goals)
+    bounds = (maze.descriptor_low, maze.descriptor_high)
+    bo = jax.vmap(
+        lambda s, k: bayes_opt(
+            grid["descriptors"][0], valid, s, k, budget=cfg.adaptation_budget, bounds=bounds
+        )
+    )(scores, keys)
+    rs = jax.vmap(lambda s, k: random_search(valid, s, k, budget=cfg.adaptation_budget))(
+        scores, keys
+    )
+    exhaustive = np.max(np.where(valid[None], np.asarray(scores), -np.inf), axis=1)
+    return FastAdaptation(
+        goals,
+        cfg.adaptation_budget,
+        np.asarray(grid["descriptors"][0]),
+        valid,
+        paths_xy,
+        alive,
+        np.asarray(bo["best_score"]),
+        np.asarray(rs["best_score"]),
+        exhaustive,
+    )
+
+
+# The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
+SCALES = {
+    "tiny": QDPGConfig(
+        num_seeds=1,
+        chunk_size=10,
+        ant_methods=("QD-PG", "TD3"),
+        adaptation_goals=20,
+        adaptation_budget=10,
+        pointmaze=dataclasses.replace(
+            POINTMAZE_PAPER,
+            num_steps=8_000,
+            policy_hidden=(16, 16),
+            critic_hidden=(32, 32),
+            optimizer="adam",
+            learning_rate=1e-3,
+            mutation_learning_rate=1e-3,
+            buffer_size=20_000,
+            num_critic_steps=10,
+            num_pg_steps=10,
+        ),
+        antmaze=ANT_TINY,
+        anttrap=ANT_TINY,
+    ),
+    # small Point-Maze: Table 3.2's networks, minibatch, K, grid and archive (threshold 1e-4, 10,000
+    # FIFO slots), with N = 8 actors per iteration: bench/qdpg_sweep.py's pick, variant
+    # "table-3.2+actors-8" (round 2); 100 gradient steps per iteration and Adam at QDax's rates per
+    # role; the largest equal budget for six methods, in steps of 1e5, that fits the notebook's
+    # time on 2 cores (about 15 min), measured: see the notebook's small-rule cell (issue 14);
+    # QD-PG on Point-Maze on 2 seeds, the other methods on 1.
+    "small": QDPGConfig(
+        num_seeds=1,
+        chunk_size=10,
+        ant_methods=("QD-PG", "TD3"),
+        pointmaze_qdpg_seeds=2,
+        pointmaze=dataclasses.replace(
+            POINTMAZE_PAPER,
+            num_steps=300_000,
+            num_actors=8,
+            optimizer="adam",
+            learning_rate=3e-4,
+            mutation_learning_rate=1e-3,
+            buffer_size=1_000_000,
+            num_critic_steps=100,
+            num_pg_steps=100,
+        ),
+        antmaze=ANT_SMALL,
+        anttrap=ANT_SMALL,
+    ),
+    "paper": QDPGConfig(
+        num_seeds=5,
+        chunk_size=50,
+        pointmaze=POINTMAZE_PAPER,
+        antmaze=ANT_PAPER,
+        anttrap=dataclasses.replace(ANT_PAPER, episode_length=1000),
+    ),
+}

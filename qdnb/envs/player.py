@@ -1,0 +1,81 @@
+"""Playing stored policies episode after episode, in fixed-size chunks of one
+compiled simulation (the tests of Chapter 4's repertoires and the QDT's datasets)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from qdnb.core.evaluation import Evaluation
+from qdnb.envs.base import Env
+from qdnb.envs.rollout import evaluate_policies
+from qdnb.nets.mlp import MLP
+
+
+class Player:
+    """Plays (policy, initial-state key) pairs in fixed-size chunks through one
+    compiled simulation, whatever the number of episodes asked for: the tests of
+    every repertoire then cost one compilation per environment.  Each episode's
+    state-descriptor path comes back as its ``trajectory``; with ``record``, its
+    ``obs``, ``action`` and ``valid`` steps instead (the QDT's datasets)."""
+
+    def __init__(self, env: Env, network: MLP, chunk: int, record: bool = False):
+        self.chunk = chunk
+        kept = ("obs", "action", "valid") if record else "next_state_descriptor"
+
+        def play(genotypes, keys):
+            def one(g, k):
+                ev = evaluate_policies(
+                    env, network.apply, jax.tree.map(lambda x: x[None], g), k, True
+                )
+                path = jax.tree.map(
+                    lambda x: x[0],
+                    {n: ev.trajectory[n] for n in kept} if record else ev.trajectory[kept],
+                )
+                return ev.fitness[0], ev.descriptor[0], path
+
+            return jax.vmap(one)(genotypes, keys)
+
+        self._play = jax.jit(play)
+
+    def play(self, genotypes: Any, keys: jax.Array) -> Evaluation:
+        n = keys.shape[0]
+        pad = (-n) % self.chunk
+        padded = jax.tree.map(
+            lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), (genotypes, keys)
+        )
+        outs = [
+            self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded))
+            for i in range(0, n + pad, self.chunk)
+        ]
+        fitness, descriptor, path = (
+            jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts) for parts in zip(*outs)
+        )
+        length = (
+            jnp.sum(path["valid"], axis=1)
+            if isinstance(path, dict)
+            else jnp.full((n,), path.shape[1])
+        )
+        return Evaluation(fitness=fitness, descriptor=descriptor, length=length, trajectory=path)
+
+    def episodes(self, num_episodes: int, only: jax.Array | None = None):
+        """``evaluate_fn(genotypes, key)``: each of the ``G`` policies over
+        ``num_episodes`` episodes from different initial states; leaves ``(G, E, ...)``.
+        With a boolean mask ``only``, the other policies are not played (zeros)."""
+
+        def evaluate_fn(genotypes: Any, key: jax.Array) -> Evaluation:
+            g = jax.tree.leaves(genotypes)[0].shape[0]
+            rows = np.arange(g) if only is None else np.flatnonzero(np.asarray(only))
+            repeated = jax.tree.map(lambda x: jnp.repeat(x[rows], num_episodes, axis=0), genotypes)
+            ev = self.play(repeated, jax.random.split(key, rows.size * num_episodes))
+            full = lambda x: (
+                jnp.zeros((g, num_episodes) + x.shape[1:], x.dtype)
+                .at[rows]
+                .set(x.reshape((rows.size, num_episodes) + x.shape[1:]))
+            )
+            return jax.tree.map(full, ev)
+
+        return evaluate_fn
