@@ -574,7 +574,7 @@ def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, mo
     from qdnb.chapters.ch4_reproducibility import save_repertoires
     from qdnb.core import paths
     from qdnb.core.config import config_hash
-    from qdnb.models.qdt import data as qdt_data
+    from qdnb.chapters import ch4_qdt as qdt_data
 
     monkeypatch.setattr(paths, "RUNS", tmp_path)
     repro = dataclasses.replace(config("ch4_reproducibility", "tiny"), environments=("ant_omni",))
@@ -599,7 +599,7 @@ def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, mo
             }
         }
 
-    monkeypatch.setattr(qdt_data, "run_environment", fake_run_environment)
+    monkeypatch.setattr(qdt_data, "run_chapter4", fake_run_environment)
     good = qdt_data.repertoire_path("tiny", "ant_omni", "ME")
     save_repertoires(good, config_hash(repro), stub, np.zeros((1, 3)), np.zeros((1, 3)))
     save_repertoires(

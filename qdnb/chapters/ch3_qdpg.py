@@ -441,6 +441,82 @@ def steps_to_exit(result: dict[str, Any]) -> np.ndarray:
     return np.where(hit.any(axis=1), steps[np.arange(len(steps)), np.argmax(hit, axis=1)], np.nan)
 
 
+# ----- the chapter's claims and summary -----
+
+
+def claims(results_by_env: dict[str, dict[str, Any]]) -> list[tuple[str, bool, str]]:
+    """The chapter's Point-Maze claims as ``(claim, holds, numbers)``.  A comparison
+    holds on the mean over seeds and on most of the seeds of the method it is about."""
+    pm = results_by_env["pointmaze"]["methods"]
+    perf = lambda name: pm[name]["final_performance"]
+    cov = lambda name: float(pm[name]["coverage"].mean())
+
+    def beats(name: str, other: str) -> bool:
+        target = float(perf(other).mean())
+        return bool(perf(name).mean() > target and np.mean(perf(name) > target) > 0.5)
+
+    def per_seed(name: str) -> str:
+        p = perf(name)
+        seeds = f" (seeds: {', '.join(f'{v:.1f}' for v in p)})" if len(p) > 1 else ""
+        return f"{p.mean():.1f}{seeds}"
+
+    reached = reached_goal(pm["QD-PG"]["history"]["descriptors"])
+    return [
+        (
+            "QD-PG reaches the exit zone (every seed)",
+            bool(reached.all()),
+            f"{reached.mean():.0%} of seeds",
+        ),
+        (
+            "QD-PG beats TD3 on final performance (mean and most seeds)",
+            beats("QD-PG", "TD3"),
+            f"{per_seed('QD-PG')} vs {per_seed('TD3')}",
+        ),
+        (
+            "QD-PG beats Q-PG on final performance (mean and most seeds)",
+            beats("QD-PG", "Q-PG"),
+            f"{per_seed('QD-PG')} vs {per_seed('Q-PG')}",
+        ),
+        (
+            "D-PG explores: covers more of the grid than Q-PG and TD3",
+            cov("D-PG") > max(cov("Q-PG"), cov("TD3")),
+            f"{cov('D-PG'):.2f} vs {cov('Q-PG'):.2f} (Q-PG), {cov('TD3'):.2f} (TD3)",
+        ),
+    ]
+
+
+def method_summaries(results_by_env: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``summary.json``'s per-environment, per-method entries; a method not run at
+    this scale is said to be so (``"ran": False``), not invented."""
+    out: dict[str, dict[str, Any]] = {}
+    for env_name, res in results_by_env.items():
+        out[env_name] = {}
+        for name, r in res["methods"].items():
+            entry = {
+                "final_performance": float(r["final_performance"].mean()),
+                "final_performance_std": float(r["final_performance"].std()),
+                "final_performance_per_seed": [float(v) for v in r["final_performance"]],
+                "coverage": float(r["coverage"].mean()),
+                "env_steps": float(r["env_steps"].mean()),
+                "run_seconds": round(r["seconds"], 1),
+            }
+            if env_name == "pointmaze":
+                entry["reached_goal"] = bool(reached_goal(r["history"]["descriptors"]).any())
+                entry["steps_to_exit"] = [
+                    None if np.isnan(v) else float(v) for v in steps_to_exit(r)
+                ]
+            out[env_name][name] = entry
+        for name in QDPG_METHODS:
+            if name not in res["methods"]:
+                out[env_name][name] = {
+                    "ran": False,
+                    "final_performance": None,
+                    "coverage": None,
+                    "env_steps": 0,
+                }
+    return out
+
+
 # ----- Section 3.7: fast adaptation on Ant-Maze -----
 
 

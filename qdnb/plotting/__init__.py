@@ -27,6 +27,14 @@ METHOD_COLORS = {
     "persistence": "#7f7f7f",
     "mean_frame": "#bcbd22",  # Chapter 5's predictors
 }
+# How the environments are named in titles, tables and legends (as in the thesis).
+ENV_LABELS = {
+    "pointmaze": "Point-Maze",
+    "antmaze": "Ant-Maze",
+    "anttrap": "Ant-Trap",
+    "ant_omni": "Ant-Omni",
+    "halfcheetah_uni": "Halfcheetah-Uni",
+}
 # How a method is named in legends and tables, where it differs from its key.
 METHOD_LABELS = {
     "flt": "FLT",

@@ -1,0 +1,71 @@
+"""The chapters' derived metrics and claim checks, on hand-made results."""
+
+import dataclasses
+
+import numpy as np
+
+from qdnb.chapters import ch2_primer
+from qdnb.envs.pointmaze import GOAL
+
+
+def primer_run(reached_per_seed, first_iteration=1):
+    """Histories of 2 seeds x 3 evaluations x 2 episodes: a seed that reaches the
+    goal does so at ``first_iteration``; every other episode ends at (0, 0)."""
+    desc = np.zeros((2, 3, 2, 2), np.float32)
+    for seed, reached in enumerate(reached_per_seed):
+        if reached:
+            desc[seed, first_iteration, 1] = GOAL
+    history = {
+        "descriptors": desc,
+        "coverage": np.full((2, 3), 0.25),
+        "min_distance": np.full((2, 3), 0.5),
+        "fitnesses": np.arange(12, dtype=float).reshape(2, 3, 2),
+    }
+    return ch2_primer.MethodRun(history, final=None, seconds=1.0)
+
+
+def test_primer_metrics_and_claim_on_hand_made_histories():
+    cfg = dataclasses.replace(
+        ch2_primer.SCALES["tiny"], num_seeds=2, num_iterations=2, batch_size=2
+    )
+    result = ch2_primer.Result(
+        cfg,
+        {
+            "GA": primer_run([False, False]),
+            "NS": primer_run([True, True]),
+            "ME": primer_run([True, True], 2),
+        },
+    )
+    m = ch2_primer.method_metrics(result)
+    assert m["NS"]["reached_per_seed"].tolist() == [True, True]
+    # steps after the evaluation that first reached it: (iteration + 1) x batch x episode length
+    assert m["NS"]["steps_to_goal_per_seed"] == [2 * 2 * 200] * 2
+    assert m["ME"]["steps_to_goal_per_seed"] == [3 * 2 * 200] * 2
+    assert m["GA"]["steps_to_goal_per_seed"] == [None, None]
+    assert m["GA"]["best_return_per_seed"].tolist() == [5.0, 11.0]
+    claim = ch2_primer.claim(result)
+    assert claim["holds"] and claim["headline"] == "goal reached in NS 2/2, ME 2/2, GA 0/2 seeds"
+    partly = ch2_primer.Result(cfg, {**result.runs, "ME": primer_run([True, False])})
+    assert not ch2_primer.claim(partly)["holds"]
+    assert "only partly" in ch2_primer.claim(partly)["verdict"]
+    summary = ch2_primer.summary_results(result)
+    assert summary["NS"]["seeds_reaching_goal"] == 2 and summary["env_steps"] == cfg.env_steps
+
+
+def test_qdt_claim_checks_on_hand_made_seeds():
+    from qdnb.chapters import ch4_qdt
+
+    def seed(ls, me_qdt, me_rep):
+        return {
+            "qdt": {"ME-LS": {"avg_distance": ls}, "ME": {"avg_distance": me_qdt}},
+            "repertoire": {"ME": {"distance": np.array([me_rep, me_rep])}},
+        }
+
+    res = {"seeds": [seed(1.0, 2.0, 0.5), seed(1.0, 3.0, 2.0), seed(1.0, 0.5, 3.0)]}
+    checks = {c["claim"]: c for c in ch4_qdt.claim_checks({"toy": res})}
+    vs_rep = checks["QDT(ME-LS) closer to the goals than ME"]
+    vs_qdt = checks["QDT(ME-LS) closer to the goals than QDT (ME)"]
+    assert vs_rep["holds"] and vs_rep["seeds where it holds"] == "2/3"  # 1.0 < 1.83 on the mean
+    assert vs_qdt["holds"] and vs_qdt["QDT (ME)"] == round(5.5 / 3, 4)
+    worse = {"seeds": [seed(1.0, 0.9, 0.9), seed(1.0, 5.0, 5.0), seed(1.0, 0.8, 0.8)]}
+    assert not any(c["holds"] for c in ch4_qdt.claim_checks({"toy": worse}))  # mean yes, 1/3 seeds
