@@ -571,10 +571,10 @@ def test_recorded_datasets_are_the_episodes_the_policies_play():
 def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, monkeypatch):
     """``load_or_recompute_repertoires`` loads matching files, recomputes (and saves)
     missing ones and those saved under another config, and says which happened."""
+    from qdnb.chapters import ch4_qdt as qdt_data
     from qdnb.chapters.ch4_reproducibility import save_repertoires
     from qdnb.core import paths
     from qdnb.core.config import config_hash
-    from qdnb.chapters import ch4_qdt as qdt_data
 
     monkeypatch.setattr(paths, "RUNS", tmp_path)
     repro = dataclasses.replace(config("ch4_reproducibility", "tiny"), environments=("ant_omni",))
@@ -587,17 +587,15 @@ def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, mo
     calls = []
 
     def fake_run_environment(cfg, env_name, key, progress, methods):
+        from types import SimpleNamespace
+
         calls.append(methods)
-        return {
-            "methods": {
-                m: {
-                    "repertoire": stub,
-                    "spread_at_insertion": np.zeros((1, 3)),
-                    "reassessed_spread": np.zeros((1, 3)),
-                }
-                for m in methods
-            }
-        }
+        one = SimpleNamespace(
+            repertoire=stub,
+            spread_at_insertion=np.zeros((1, 3)),
+            reassessed_spread=np.zeros((1, 3)),
+        )
+        return SimpleNamespace(methods={m: one for m in methods})
 
     monkeypatch.setattr(qdt_data, "run_chapter4", fake_run_environment)
     good = qdt_data.repertoire_path("tiny", "ant_omni", "ME")

@@ -189,22 +189,22 @@ def test_seed_scores_and_claim_checks_on_a_hand_made_result():
             spread=np.array(spread, np.float32).reshape(2, 1),
             chosen=np.zeros((2, 1), int),
         )
-        return {
-            "accuracy": acc,
-            "repertoire": rep,
-            "metrics": {"coverage": np.array(coverage)},
-            "metrics_reassessed": {"coverage": np.array(coverage_after)},
-        }
+        return SimpleNamespace(
+            accuracy=acc,
+            repertoire=rep,
+            metrics={"coverage": np.array(coverage)},
+            metrics_reassessed={"coverage": np.array(coverage_after)},
+        )
 
-    res = {
-        "goals": np.zeros((1, 1), np.float32),
-        "methods": {
+    res = SimpleNamespace(
+        goals=np.zeros((1, 1), np.float32),
+        methods={
             "ME-LS": method([1.0, 2.0], [0.5, 1.0], [0.1, 0.2], [0.5, 0.4], [0.5, 0.2]),
             "ME": method([3.0, 1.0], [0.0, 0.5], [0.3, 0.1], [0.8, 0.8], [0.4, 0.2]),
             "PGA-ME-LS": method([1.0, 1.0], [1.0, 1.0], [0.1, 0.1], [0.5, 0.5], [0.5, 0.5]),
             "PGA-ME": method([2.0, 2.0], [1.0, 1.0], [0.2, 0.2], [0.5, 0.5], [0.25, 0.25]),
         },
-    }
+    )
     s = seed_scores(res, "ME-LS")
     np.testing.assert_allclose(s["reproduction_gap"], [0.5, 1.0])
     np.testing.assert_allclose(s["avg_promised_distance"], [0.5, 1.0])
@@ -216,3 +216,11 @@ def test_seed_scores_and_claim_checks_on_a_hand_made_result():
     assert checks["ME-LS keeps more coverage than ME on reassessment"]["holds"]  # 0.75 vs 0.375
     assert checks["PGA-ME-LS avg_spread < PGA-ME"]["holds"]
     assert len(checks) == 6
+
+
+def test_results_are_frozen():
+    from qdnb.chapters.ch4_reproducibility import EnvironmentResult
+
+    res = EnvironmentResult("ant_omni", None, np.zeros((2, 2)), np.zeros((3, 2)), 0.0, {})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        res.goals = np.ones((3, 2))

@@ -178,13 +178,13 @@ def load_or_recompute_repertoires(
             key = jax.random.fold_in(jax.random.PRNGKey(seed), i)
             out = run_chapter4(repro_cfg, env_name, key, progress, methods=tuple(missing))
             for method in missing:
-                r = out["methods"][method]
+                r = out.methods[method]
                 path = save_repertoires(
                     repertoire_path(scale, env_name, method),
                     digest,
-                    r["repertoire"],
-                    r["spread_at_insertion"],
-                    r["reassessed_spread"],
+                    r.repertoire,
+                    r.spread_at_insertion,
+                    r.reassessed_spread,
                 )
                 repertoires[env_name][method] = load_repertoires(path, digest)
     return repertoires, status

@@ -244,15 +244,55 @@ def representative_cells(
     return ranked[[int(round(q * (ranked.size - 1))) for q in quantiles]]
 
 
+@dataclass(frozen=True)
+class MethodResult:
+    """One method on one environment, all seeds: every array has the seeds on axis 0.
+
+    ``history``: coverage, max fitness and QD score per iteration; ``repertoire``
+    the final elites and ``spread_at_insertion`` their spread when inserted (NaN for
+    the single-episode methods); ``accuracy`` the accuracy experiment (Section
+    4.5.2); ``reassessed`` the elites re-inserted after replaying them, with their
+    ``reassessed_spread`` (Table 4.5); ``metrics`` and ``metrics_reassessed`` the QD
+    metrics before and after; ``representatives`` the three policies of Figures
+    4.3-4.5 (seed 0), played ``representative_episodes`` times."""
+
+    history: dict[str, np.ndarray]
+    repertoire: Repertoire
+    spread_at_insertion: np.ndarray
+    accuracy: Any
+    reassessed: Repertoire
+    reassessed_spread: np.ndarray
+    metrics: dict[str, np.ndarray]
+    metrics_reassessed: dict[str, np.ndarray]
+    representatives: dict[str, np.ndarray]
+    env_steps: int
+    run_seconds: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class EnvironmentResult:
+    """Every method on one environment: the task, its CVT ``centroids`` (the
+    repertoires' cells) and ``goals`` (the accuracy experiment's), the QD score's
+    ``fitness_offset``, and a ``MethodResult`` per method."""
+
+    env_name: str
+    env: Env
+    centroids: np.ndarray
+    goals: np.ndarray
+    fitness_offset: float
+    methods: dict[str, MethodResult]
+
+
 def run_environment(
     cfg: ReproducibilityConfig,
     env_name: str,
     key: jax.Array,
     progress: bool = True,
     methods: tuple[str, ...] = tuple(METHODS),
-) -> dict[str, Any]:
+) -> EnvironmentResult:
     """Every method on ``env_name`` for ``cfg.num_seeds`` seeds, and the tests of
-    their final repertoires.  Returns a dict of numpy arrays (see the keys below)."""
+    their final repertoires."""
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(METHODS)}")
@@ -281,14 +321,7 @@ def run_environment(
     metrics_fn = jax.vmap(lambda rep: qd_metrics(rep, offset))
 
     seeds = jax.random.split(k_run, cfg.num_seeds)
-    out: dict[str, Any] = {
-        "env_name": env_name,
-        "env": env,
-        "centroids": np.asarray(centroids),
-        "goals": np.asarray(goals),
-        "fitness_offset": offset,
-        "methods": {},
-    }
+    results: dict[str, MethodResult] = {}
     for name in methods:
         algorithm = algorithms[name]
         start = time.time()
@@ -311,40 +344,41 @@ def run_environment(
         played = player.episodes(cfg.representative_episodes)(
             jax.tree.map(lambda x: x[cells], seed0.genotypes), k_rep
         )
-        result = {
-            "history": jax.device_get(
+        results[name] = MethodResult(
+            history=jax.device_get(
                 {k: history[k] for k in ("coverage", "max_fitness", "qd_score")}
             ),
-            "repertoire": jax.device_get(elites),
-            "spread_at_insertion": (
+            repertoire=jax.device_get(elites),
+            spread_at_insertion=(
                 np.asarray(states.repertoire.spreads)
                 if name in LOW_SPREAD
                 else np.full(np.shape(elites.fitnesses), np.nan)
             ),
-            "accuracy": jax.device_get(acc),
-            "reassessed": jax.device_get(reassessed),
-            "reassessed_spread": np.where(
+            accuracy=jax.device_get(acc),
+            reassessed=jax.device_get(reassessed),
+            reassessed_spread=np.where(
                 np.asarray(elites.filled), np.asarray(scores.spread), np.nan
             ),
-            "metrics": jax.device_get(metrics_fn(elites)),
-            "metrics_reassessed": jax.device_get(metrics_fn(reassessed)),
-            "representatives": {
+            metrics=jax.device_get(metrics_fn(elites)),
+            metrics_reassessed=jax.device_get(metrics_fn(reassessed)),
+            representatives={
                 "cells": cells,
                 "stored_descriptor": np.asarray(seed0.descriptors)[cells],
                 "descriptor": np.asarray(played.descriptor),  # (3, episodes, d)
                 "state_descriptor": np.asarray(played.trajectory),  # (3, episodes, T, d)
             },
-            "env_steps": int((cfg.num_iterations + 1) * cfg.env_batch * cfg.episode_length),
-            "run_seconds": run_seconds,
-            "seconds": time.time() - start,
-        }
-        out["methods"][name] = result
-    return out
+            env_steps=int((cfg.num_iterations + 1) * cfg.env_batch * cfg.episode_length),
+            run_seconds=run_seconds,
+            seconds=time.time() - start,
+        )
+    return EnvironmentResult(
+        env_name, env, np.asarray(centroids), np.asarray(goals), offset, results
+    )
 
 
 def run_environments(
     cfg: ReproducibilityConfig, key: jax.Array, progress: bool = True, concurrent: bool = True
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, EnvironmentResult]:
     """``run_environment`` for each of ``cfg.environments``, each with its own
     key (``fold_in`` of the environment's index), in concurrent threads unless
     ``concurrent`` is false.  The numbers do not depend on the concurrency."""
@@ -364,16 +398,16 @@ CLAIM_PAIRS = (("ME-LS", "ME"), ("PGA-ME-LS", "PGA-ME"))  # (Low-Spread variant,
 CLAIM_METRICS = (("avg_spread", np.less), ("avg_distance", np.less), ("coverage_kept", np.greater))
 
 
-def seed_scores(res: dict[str, Any], name: str) -> dict[str, np.ndarray]:
+def seed_scores(res: EnvironmentResult, name: str) -> dict[str, np.ndarray]:
     """Per seed (axis 0), method ``name`` of an environment's result: the accuracy
     experiment's average distance and spread (Table 4.4), the distance the stored
     descriptors promised for the same goals and the reproduction gap (delivered minus
     promised), the coverage, and the share of it kept on reassessment (Table 4.5)."""
-    r = res["methods"][name]
-    acc, rep = r["accuracy"], r["repertoire"]
+    r = res.methods[name]
+    acc, rep = r.accuracy, r.repertoire
     chosen = np.take_along_axis(rep.descriptors, acc.chosen[..., None], axis=1)  # (seeds, goals, d)
-    promised = np.linalg.norm(chosen - res["goals"][None], axis=-1)
-    before, after = r["metrics"], r["metrics_reassessed"]
+    promised = np.linalg.norm(chosen - res.goals[None], axis=-1)
+    before, after = r.metrics, r.metrics_reassessed
     return {
         "avg_distance": acc.distance.mean(1),
         "avg_spread": acc.spread.mean(1),
@@ -384,7 +418,7 @@ def seed_scores(res: dict[str, Any], name: str) -> dict[str, np.ndarray]:
     }
 
 
-def claim_checks(results_by_env: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str, Any]]:
     """The chapter's claim, comparison by comparison: each Low-Spread variant against
     its baseline on spread, distance and coverage kept.  A comparison holds when it
     goes the thesis's way on the mean over seeds and on most seeds."""
@@ -411,7 +445,9 @@ def claim_checks(results_by_env: dict[str, dict[str, Any]]) -> list[dict[str, An
     return checks
 
 
-def summary_results(cfg: ReproducibilityConfig, results_by_env: dict[str, dict[str, Any]]) -> dict:
+def summary_results(
+    cfg: ReproducibilityConfig, results_by_env: dict[str, EnvironmentResult]
+) -> dict:
     """The ``results`` of ``summary.json`` (its schema is read by the book and the tests)."""
     checks = claim_checks(results_by_env)
     held, total = sum(c["holds"] for c in checks), len(checks)
@@ -421,14 +457,14 @@ def summary_results(cfg: ReproducibilityConfig, results_by_env: dict[str, dict[s
         "claims_total": total,
         "num_seeds": cfg.num_seeds,
         "descriptor_bounds": {
-            e: {"low": list(res["env"].descriptor_low), "high": list(res["env"].descriptor_high)}
+            e: {"low": list(res.env.descriptor_low), "high": list(res.env.descriptor_high)}
             for e, res in results_by_env.items()
         },
     }
     mean = lambda d: {k: float(np.mean(d[k])) for k in ("coverage", "max_fitness", "qd_score")}
     for env_name, res in results_by_env.items():
         results[env_name] = {}
-        for name, r in res["methods"].items():
+        for name, r in res.methods.items():
             seeds = seed_scores(res, name)
             results[env_name][name] = {
                 **{
@@ -440,11 +476,11 @@ def summary_results(cfg: ReproducibilityConfig, results_by_env: dict[str, dict[s
                         "reproduction_gap",
                     )
                 },
-                **mean(r["metrics"]),
-                "reassessed": mean(r["metrics_reassessed"]),
+                **mean(r.metrics),
+                "reassessed": mean(r.metrics_reassessed),
                 "coverage_kept": float(seeds["coverage_kept"].mean()),
-                "env_steps": r["env_steps"],
-                "run_seconds": round(r["run_seconds"], 1),
+                "env_steps": r.env_steps,
+                "run_seconds": round(r.run_seconds, 1),
                 "seeds": {k: np.asarray(v).tolist() for k, v in seeds.items()},
             }
     return results
