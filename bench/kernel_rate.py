@@ -33,7 +33,7 @@ from qdnb.book.registry import config
 cfg = config("ch3_qdpg", {scale!r}).with_pointmaze_iterations({iterations})
 out = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",))
 with open({result!r}, "w") as f:
-    json.dump(out["methods"]["QD-PG"]["steady_seconds_per_iteration"], f)
+    json.dump(out.methods["QD-PG"].steady_seconds_per_iteration, f)
 """
 
 
@@ -60,7 +60,7 @@ def main() -> None:
     out = run_environment(
         cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=("QD-PG",)
     )
-    rates["in this process"] = out["methods"]["QD-PG"]["steady_seconds_per_iteration"]
+    rates["in this process"] = out.methods["QD-PG"].steady_seconds_per_iteration
     record = {
         "scale": args.scale,
         "machine": platform.machine(),

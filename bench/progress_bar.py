@@ -41,7 +41,7 @@ def main() -> None:
         out = run_environment(
             cfg, "pointmaze", jax.random.PRNGKey(0), progress=progress, methods=("QD-PG",)
         )
-        rates[name] = out["methods"]["QD-PG"]["steady_seconds_per_iteration"]
+        rates[name] = out.methods["QD-PG"].steady_seconds_per_iteration
         print(name, rates[name], flush=True)
     result = {
         "scale": args.scale,

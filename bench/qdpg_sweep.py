@@ -94,16 +94,16 @@ def variant_config(grid: str, name: str, seeds: int):
     return dataclasses.replace(cfg.with_seeds(seeds), pointmaze=task), overrides
 
 
-def summarise(result: dict, seconds: float) -> dict:
+def summarise(result, seconds: float) -> dict:
     steps = steps_to_exit(result)
-    perf = np.asarray(result["final_performance"], float)
+    perf = np.asarray(result.final_performance, float)
     return {
         "steps_to_exit": [None if np.isnan(s) else int(s) for s in steps],
         "reached_exit": int(np.sum(~np.isnan(steps))),
         "final_performance": perf.tolist(),
         "mean_final_performance": float(perf.mean()),
-        "coverage": np.asarray(result["coverage"], float).tolist(),
-        "env_steps": np.asarray(result["env_steps"]).tolist(),
+        "coverage": np.asarray(result.coverage, float).tolist(),
+        "env_steps": np.asarray(result.env_steps).tolist(),
         "seconds": seconds,
     }
 
@@ -192,7 +192,7 @@ def main() -> None:
             result = run_environment(
                 cfg, "pointmaze", jax.random.PRNGKey(0), progress=True, methods=(method,)
             )
-            entry = summarise(result["methods"][method], time.perf_counter() - start)
+            entry = summarise(result.methods[method], time.perf_counter() - start)
             entry["settings"] = overrides
             entry["commit"] = code_commit()  # wall times depend on the code that ran them
             runs.setdefault(name, {})[method] = entry

@@ -302,9 +302,9 @@ def test_qdpg_on_point_maze_runs_on_its_own_seed_count():
     out = run_environment(
         cfg, "pointmaze", jax.random.PRNGKey(0), progress=False, methods=("QD-PG", "TD3")
     )
-    assert out["methods"]["QD-PG"]["final_performance"].shape == (2,)
-    assert out["methods"]["TD3"]["final_performance"].shape == (1,)
-    assert out["methods"]["QD-PG"]["history"]["descriptors"].shape[:2] == (2, 2)
+    assert out.methods["QD-PG"].final_performance.shape == (2,)
+    assert out.methods["TD3"].final_performance.shape == (1,)
+    assert out.methods["QD-PG"].history["descriptors"].shape[:2] == (2, 2)
     with pytest.raises(ValueError, match="pointmaze_qdpg_seeds=0 must be at least 1"):
         dataclasses.replace(tiny, pointmaze_qdpg_seeds=0)
 

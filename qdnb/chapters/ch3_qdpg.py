@@ -337,21 +337,44 @@ def final_grid(state: Any) -> dict[str, np.ndarray] | None:
     )
 
 
+@dataclass(frozen=True)
+class MethodResult:
+    """One method on one environment, all its seeds (axis 0 of every array).
+
+    ``history``: per iteration (initial batch first), the algorithm's metrics, the
+    environment steps, and every evaluated policy's descriptor and fitness;
+    ``grid`` the final MAP-Elites grid (``None`` for TD3); ``final_performance``
+    Table 3.4's performance at the end; ``coverage`` the grid's final coverage;
+    ``cumulative_steps`` the environment steps after each iteration;
+    ``steady_seconds_per_iteration`` the median compiled chunk's time."""
+
+    history: dict[str, np.ndarray]
+    grid: dict[str, Any] | None
+    final_performance: np.ndarray
+    coverage: np.ndarray
+    env_steps: np.ndarray
+    cumulative_steps: np.ndarray
+    seconds: float
+    steady_seconds_per_iteration: float
+
+
+@dataclass(frozen=True)
+class EnvironmentResult:
+    env: Env
+    env_name: str
+    methods: dict[str, MethodResult]
+
+
 def run_environment(
     cfg: QDPGConfig,
     env_name: str,
     key: jax.Array,
     progress: bool = True,
     methods: tuple[str, ...] | None = None,
-) -> dict[str, Any]:
+) -> EnvironmentResult:
     """Run every method of ``cfg`` (or those of ``methods``) on ``env_name``,
-    each on ``cfg.seeds(env_name, method)`` seeds.
-
-    Returns ``{"env", "env_name", "methods": {name: {"history", "grid",
-    "final_performance", "coverage", "env_steps", "seconds",
-    "steady_seconds_per_iteration"}}}``; ``history``
-    arrays have shape ``(num_seeds, num_iterations + 1, ...)``.
-    """
+    each on ``cfg.seeds(env_name, method)`` seeds; ``history`` arrays have shape
+    ``(num_seeds, num_iterations + 1, ...)``."""
     task = cfg.task(env_name)
     env = make_task_env(cfg, env_name)
     algorithms = build_algorithms(cfg, env_name, env)
@@ -363,7 +386,7 @@ def run_environment(
                 f"{', '.join(algorithms)}"
             )
         algorithms = {m: algorithms[m] for m in methods}
-    out: dict[str, Any] = {"env": env, "env_name": env_name, "methods": {}}
+    results: dict[str, MethodResult] = {}
     for method, algo in algorithms.items():
         keys = jax.random.split(key, cfg.seeds(env_name, method))
         start, chunks = time.perf_counter(), []
@@ -380,23 +403,23 @@ def run_environment(
         seconds = time.perf_counter() - start
         steps = np.cumsum(history["env_steps"], axis=1)
         grid = final_grid(states)
-        out["methods"][method] = {
-            "history": history,
-            "grid": grid,
-            "final_performance": history["max_fitness"][:, -1],
-            "coverage": (
+        results[method] = MethodResult(
+            history=history,
+            grid=grid,
+            final_performance=history["max_fitness"][:, -1],
+            coverage=(
                 np.mean(grid["fitnesses"] > -np.inf, axis=1)
                 if grid is not None
                 else grid_coverage(history["descriptors"], env, task.bins)
             ),
-            "env_steps": steps[:, -1],
-            "cumulative_steps": steps,
-            "seconds": seconds,
-            "steady_seconds_per_iteration": steady_rate(
+            env_steps=steps[:, -1],
+            cumulative_steps=steps,
+            seconds=seconds,
+            steady_seconds_per_iteration=steady_rate(
                 chunks, cfg.chunk_size, seconds / task.num_iterations
             ),
-        }
-    return out
+        )
+    return EnvironmentResult(env, env_name, results)
 
 
 def steady_rate(chunk_seconds: list[float], chunk_size: int, fallback: float) -> float:
@@ -431,25 +454,25 @@ def reached_goal(descriptors: np.ndarray) -> np.ndarray:
     return in_exit_zone(descriptors).reshape(np.shape(descriptors)[0], -1).any(axis=1)
 
 
-def steps_to_exit(result: dict[str, Any]) -> np.ndarray:
+def steps_to_exit(result: MethodResult) -> np.ndarray:
     """Per seed, the environment steps a Point-Maze method had used when one of
     its evaluated episodes first ended in the exit zone (``nan`` if none did);
     ``result`` is one method's entry of ``run_environment``."""
-    hit = in_exit_zone(result["history"]["descriptors"])  # seeds x iterations x episodes
+    hit = in_exit_zone(result.history["descriptors"])  # seeds x iterations x episodes
     hit = hit.reshape(hit.shape[0], hit.shape[1], -1).any(axis=2)
-    steps = np.asarray(result["cumulative_steps"], float)
+    steps = np.asarray(result.cumulative_steps, float)
     return np.where(hit.any(axis=1), steps[np.arange(len(steps)), np.argmax(hit, axis=1)], np.nan)
 
 
 # ----- the chapter's claims and summary -----
 
 
-def claims(results_by_env: dict[str, dict[str, Any]]) -> list[tuple[str, bool, str]]:
+def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool, str]]:
     """The chapter's Point-Maze claims as ``(claim, holds, numbers)``.  A comparison
     holds on the mean over seeds and on most of the seeds of the method it is about."""
-    pm = results_by_env["pointmaze"]["methods"]
-    perf = lambda name: pm[name]["final_performance"]
-    cov = lambda name: float(pm[name]["coverage"].mean())
+    pm = results_by_env["pointmaze"].methods
+    perf = lambda name: pm[name].final_performance
+    cov = lambda name: float(pm[name].coverage.mean())
 
     def beats(name: str, other: str) -> bool:
         target = float(perf(other).mean())
@@ -460,7 +483,7 @@ def claims(results_by_env: dict[str, dict[str, Any]]) -> list[tuple[str, bool, s
         seeds = f" (seeds: {', '.join(f'{v:.1f}' for v in p)})" if len(p) > 1 else ""
         return f"{p.mean():.1f}{seeds}"
 
-    reached = reached_goal(pm["QD-PG"]["history"]["descriptors"])
+    reached = reached_goal(pm["QD-PG"].history["descriptors"])
     return [
         (
             "QD-PG reaches the exit zone (every seed)",
@@ -485,29 +508,29 @@ def claims(results_by_env: dict[str, dict[str, Any]]) -> list[tuple[str, bool, s
     ]
 
 
-def method_summaries(results_by_env: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+def method_summaries(results_by_env: dict[str, EnvironmentResult]) -> dict[str, dict[str, Any]]:
     """``summary.json``'s per-environment, per-method entries; a method not run at
     this scale is said to be so (``"ran": False``), not invented."""
     out: dict[str, dict[str, Any]] = {}
     for env_name, res in results_by_env.items():
         out[env_name] = {}
-        for name, r in res["methods"].items():
+        for name, r in res.methods.items():
             entry = {
-                "final_performance": float(r["final_performance"].mean()),
-                "final_performance_std": float(r["final_performance"].std()),
-                "final_performance_per_seed": [float(v) for v in r["final_performance"]],
-                "coverage": float(r["coverage"].mean()),
-                "env_steps": float(r["env_steps"].mean()),
-                "run_seconds": round(r["seconds"], 1),
+                "final_performance": float(r.final_performance.mean()),
+                "final_performance_std": float(r.final_performance.std()),
+                "final_performance_per_seed": [float(v) for v in r.final_performance],
+                "coverage": float(r.coverage.mean()),
+                "env_steps": float(r.env_steps.mean()),
+                "run_seconds": round(r.seconds, 1),
             }
             if env_name == "pointmaze":
-                entry["reached_goal"] = bool(reached_goal(r["history"]["descriptors"]).any())
+                entry["reached_goal"] = bool(reached_goal(r.history["descriptors"]).any())
                 entry["steps_to_exit"] = [
                     None if np.isnan(v) else float(v) for v in steps_to_exit(r)
                 ]
             out[env_name][name] = entry
         for name in QDPG_METHODS:
-            if name not in res["methods"]:
+            if name not in res.methods:
                 out[env_name][name] = {
                     "ran": False,
                     "final_performance": None,
@@ -548,13 +571,13 @@ class FastAdaptation:
         }
 
 
-def fast_adaptation(cfg: QDPGConfig, antmaze: dict[str, Any], seed: int) -> FastAdaptation:
+def fast_adaptation(cfg: QDPGConfig, antmaze: EnvironmentResult, seed: int) -> FastAdaptation:
     """Section 3.7 on ``antmaze`` (``run_environment``'s result): each stored solution
     of QD-PG's seed-0 grid plays one recorded episode; ``cfg.adaptation_goals``
     random goals are scored by the best reward an episode gets for them
     (``reach_scores``), and Bayesian optimisation over the descriptors picks
     ``cfg.adaptation_budget`` solutions to try for each goal."""
-    grid, maze = antmaze["methods"]["QD-PG"]["grid"], antmaze["env"]
+    grid, maze = antmaze.methods["QD-PG"].grid, antmaze.env
     valid = np.isfinite(grid["fitnesses"][0])
     genotypes = jax.tree.map(lambda x: x[0], grid["genotypes"])
     network = MLP(cfg.antmaze.policy_hidden + (maze.action_size,), activation="relu")
