@@ -1,6 +1,7 @@
 """The chapters' derived metrics and claim checks, on hand-made results."""
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -61,11 +62,23 @@ def test_qdt_claim_checks_on_hand_made_seeds():
             "repertoire": {"ME": {"distance": np.array([me_rep, me_rep])}},
         }
 
-    res = {"seeds": [seed(1.0, 2.0, 0.5), seed(1.0, 3.0, 2.0), seed(1.0, 0.5, 3.0)]}
+    res = SimpleNamespace(seeds=[seed(1.0, 2.0, 0.5), seed(1.0, 3.0, 2.0), seed(1.0, 0.5, 3.0)])
     checks = {c["claim"]: c for c in ch4_qdt.claim_checks({"toy": res})}
     vs_rep = checks["QDT(ME-LS) closer to the goals than ME"]
     vs_qdt = checks["QDT(ME-LS) closer to the goals than QDT (ME)"]
     assert vs_rep["holds"] and vs_rep["seeds where it holds"] == "2/3"  # 1.0 < 1.83 on the mean
     assert vs_qdt["holds"] and vs_qdt["QDT (ME)"] == round(5.5 / 3, 4)
-    worse = {"seeds": [seed(1.0, 0.9, 0.9), seed(1.0, 5.0, 5.0), seed(1.0, 0.8, 0.8)]}
+    worse = SimpleNamespace(seeds=[seed(1.0, 0.9, 0.9), seed(1.0, 5.0, 5.0), seed(1.0, 0.8, 0.8)])
     assert not any(c["holds"] for c in ch4_qdt.claim_checks({"toy": worse}))  # mean yes, 1/3 seeds
+
+
+def test_qdt_results_stack_a_quantity_over_the_seeds_that_have_it():
+    from qdnb.chapters.ch4_qdt import EnvironmentResult
+
+    seeds = (
+        {"qdt": {"ME": {"avg_distance": 1.0}, "Naive": {"avg_distance": 4.0}}},
+        {"qdt": {"ME": {"avg_distance": 2.0}}},  # a claim-only seed: no Naive QDT
+    )
+    res = EnvironmentResult("toy", (0.0,), (1.0,), np.zeros((2, 1)), np.zeros((3, 1)), {}, seeds)
+    assert res.stack("qdt", "ME", "avg_distance").tolist() == [1.0, 2.0]
+    assert res.stack("qdt", "Naive", "avg_distance").tolist() == [4.0]

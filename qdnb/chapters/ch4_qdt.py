@@ -12,6 +12,7 @@ draws and tabulates.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -190,12 +191,36 @@ def load_or_recompute_repertoires(
     return repertoires, status
 
 
-def seeds_with(result: dict[str, Any], part: str, name: str) -> list[Any]:
-    """``seed[part][name]`` of every seed of ``run_environment``'s result that has
-    it (``part``: "repertoire", "selection", "teachers", "datasets", "qdt" or
-    "generalization"); later seeds hold only ``CLAIM_SOURCES`` when
-    ``full_seeds`` is below ``num_seeds``."""
-    return [s[part][name] for s in result["seeds"] if name in s[part]]
+@dataclass(frozen=True)
+class EnvironmentResult:
+    """Every experiment of the chapter on one environment: the descriptor box
+    (``low``, ``high``), the selection ``zones`` and evaluation ``goals`` (their own
+    CVTs), the goals each pruning removes, and one entry per seed (``seeds[i][part]
+    [name]``, ``part`` one of "repertoire", "selection", "teachers", "datasets", "qdt"
+    and "generalization"; the seeds past ``full_seeds`` hold only ``CLAIM_SOURCES``).
+    ``stack`` gathers one quantity over the seeds that have it, seeds on axis 0."""
+
+    env_name: str
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    zones: np.ndarray
+    goals: np.ndarray
+    removed_goals: dict[str, np.ndarray]
+    seeds: tuple[dict[str, Any], ...]
+    seconds: float = float("nan")
+
+    def stack(self, part: str, name: str, key: str | None = None) -> np.ndarray:
+        """``seed[part][name][key]`` (or the attribute ``key`` of a ``Selection``)
+        of every seed that has it, stacked on axis 0."""
+        values = seeds_with(self, part, name)
+        if key is not None:
+            values = [v[key] if isinstance(v, dict) else getattr(v, key) for v in values]
+        return np.stack([np.asarray(v) for v in values])
+
+
+def seeds_with(result: EnvironmentResult, part: str, name: str) -> list[Any]:
+    """``seed[part][name]`` of every seed of ``result`` that has it."""
+    return [s[part][name] for s in result.seeds if name in s[part]]
 
 
 def num_seeds_of(repertoires: dict[str, Any]) -> int:
@@ -209,7 +234,7 @@ def run_environment(
     repertoires: dict[str, Any],
     key: jax.Array,
     progress: bool = True,
-) -> dict[str, Any]:
+) -> EnvironmentResult:
     """Every experiment of the chapter on ``env_name``.  ``repertoires[method]``
     are the Chapter 4 repertoires (stacked over its seeds); QDT seed ``i`` uses
     repertoire seed ``i`` (cycling when the Chapter 4 run has fewer seeds)."""
@@ -347,15 +372,9 @@ def run_environment(
             seed["generalization"][name] = res
         seed["datasets"] = {name: np.asarray(d.bd) for name, d in {**data, **pruned}.items()}
         per_seed.append(seed)
-    return {
-        "env_name": env_name,
-        "low": low,
-        "high": high,
-        "zones": np.asarray(zones),
-        "goals": np.asarray(goals),
-        "removed_goals": removed,
-        "seeds": per_seed,
-    }
+    return EnvironmentResult(
+        env_name, low, high, np.asarray(zones), np.asarray(goals), removed, tuple(per_seed)
+    )
 
 
 def run_environments(
@@ -365,12 +384,12 @@ def run_environments(
     key: jax.Array,
     progress: bool = True,
     concurrent: bool = True,
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, EnvironmentResult]:
     """``run_environment`` for each of ``cfg.environments`` (its key the ``fold_in``
     of the environment's index), in concurrent threads unless ``concurrent`` is
     false; each result also holds its wall time, ``seconds``."""
 
-    def one(env_name: str) -> dict[str, Any]:
+    def one(env_name: str) -> EnvironmentResult:
         start = time.time()
         out = run_environment(
             cfg,
@@ -380,7 +399,7 @@ def run_environments(
             jax.random.fold_in(key, cfg.environments.index(env_name)),
             progress,
         )
-        return {**out, "seconds": time.time() - start}
+        return dataclasses.replace(out, seconds=time.time() - start)
 
     return map_concurrently(one, cfg.environments, concurrent)
 
@@ -388,7 +407,7 @@ def run_environments(
 # ----- the chapter's claim -----
 
 
-def claim_checks(results_by_env: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str, Any]]:
     """The accuracy claim (Section 4.5.2, Table 4.4), comparison by comparison: the
     QDT trained on ME-LS data lands closer to the goals than the ME repertoire and
     than the QDT trained on ME data.  A comparison holds on the mean over seeds and
@@ -396,9 +415,9 @@ def claim_checks(results_by_env: dict[str, dict[str, Any]]) -> list[dict[str, An
     checks = []
     for env_name, res in results_by_env.items():
         per_seed = {
-            "QDT (ME-LS)": np.array([s["qdt"]["ME-LS"]["avg_distance"] for s in res["seeds"]]),
-            "QDT (ME)": np.array([s["qdt"]["ME"]["avg_distance"] for s in res["seeds"]]),
-            "ME": np.array([s["repertoire"]["ME"]["distance"].mean() for s in res["seeds"]]),
+            "QDT (ME-LS)": np.array([s["qdt"]["ME-LS"]["avg_distance"] for s in res.seeds]),
+            "QDT (ME)": np.array([s["qdt"]["ME"]["avg_distance"] for s in res.seeds]),
+            "ME": np.array([s["repertoire"]["ME"]["distance"].mean() for s in res.seeds]),
         }
         for other in ("ME", "QDT (ME)"):
             a, b = per_seed["QDT (ME-LS)"], per_seed[other]
