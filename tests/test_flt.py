@@ -144,21 +144,21 @@ def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
         model, params, WORLD, system, mean_frames, jax.random.PRNGKey(3), episodes=5, batch=2
     )
     for name in ("flt", "persistence", "mean_frame"):
-        assert out["errors"][name]["A"].shape == (5, WORLD.steps)
-    truth = out["truth"]  # the first three episodes
+        assert out.errors[name]["A"].shape == (5, WORLD.steps)
+    truth = out.truth  # the first three episodes
     # an all-zero mean frame scores the mean square of the truth; persistence scores the change
     # since x_0
     np.testing.assert_allclose(
-        out["errors"]["mean_frame"]["A"][:3],
+        out.errors["mean_frame"]["A"][:3],
         np.mean(truth[:, 1:, ..., :1] ** 2, axis=(2, 3, 4)),
         rtol=1e-5,
     )
     np.testing.assert_allclose(
-        out["errors"]["persistence"]["A"][:3],
+        out.errors["persistence"]["A"][:3],
         np.mean((truth[:, 1:, ..., :1] - truth[:, :1, ..., :1]) ** 2, axis=(2, 3, 4)),
         rtol=1e-5,
     )
-    assert out["drift"].shape == (5,) and out["drift"].max() < 1e-5
+    assert out.drift.shape == (5,) and out.drift.max() < 1e-5
 
 
 def test_mass_drift_on_a_hand_made_episode():

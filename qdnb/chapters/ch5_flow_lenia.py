@@ -248,6 +248,20 @@ METHODS = {
 }
 
 
+@dataclass(frozen=True)
+class HeldOut:
+    """The evaluation on held-out episodes (Section 5.4): ``errors[predictor]["A" |
+    "frame"]`` ``(episodes, T)`` for the predictions of ``x_1 .. x_T`` (the predictors
+    of ``METHODS`` and ``"flt_teacher_forced"``, the FLT fed the true frames);
+    ``truth`` and ``flt`` the first three episodes' frames; ``drift`` every episode's
+    mass drift (episodes on axis 0 everywhere)."""
+
+    errors: dict[str, dict[str, np.ndarray]]
+    truth: np.ndarray
+    flt: np.ndarray
+    drift: np.ndarray
+
+
 def evaluate(
     model: FLT,
     params: Any,
@@ -257,7 +271,7 @@ def evaluate(
     key: jax.Array,
     episodes: int,
     batch: int = 16,
-) -> dict[str, Any]:
+) -> HeldOut:
     """Simulate ``episodes`` held-out episodes and score the three predictors frame
     by frame: ``errors[predictor]["A" | "frame"]`` ``(episodes, T)`` for the
     predictions of ``x_1 .. x_T`` (``frame_errors``), plus ``"flt_teacher_forced"``: the FLT fed
@@ -292,12 +306,9 @@ def evaluate(
         name: {q: np.concatenate([np.asarray(p[q]) for p in ps]) for q in ("A", "frame")}
         for name, ps in parts.items()
     }
-    return {
-        "errors": errors,
-        "truth": np.concatenate(truth_kept)[:3],
-        "flt": np.concatenate(flt_kept)[:3],
-        "drift": np.concatenate(drifts),
-    }
+    return HeldOut(
+        errors, np.concatenate(truth_kept)[:3], np.concatenate(flt_kept)[:3], np.concatenate(drifts)
+    )
 
 
 # ----- the surprise search (Section 5.3.2) -----
