@@ -21,13 +21,16 @@ def pytest_runtest_setup(item):
     if item.path.suffix == ".ipynb":
         import tempfile
 
-        item.config._qdnb_runs = os.environ.get("QDNB_RUNS")
-        os.environ["QDNB_RUNS"] = tempfile.mkdtemp(prefix="qdnb-nbmake-runs-")
+        item._qdnb_runs = (os.environ.get("QDNB_RUNS"), tempfile.mkdtemp(prefix="qdnb-nbmake-"))
+        os.environ["QDNB_RUNS"] = item._qdnb_runs[1]
 
 
 def pytest_runtest_teardown(item):
     if item.path.suffix == ".ipynb":
-        previous = getattr(item.config, "_qdnb_runs", None)
+        import shutil
+
+        previous, runs = item._qdnb_runs
+        shutil.rmtree(runs, ignore_errors=True)
         if previous is None:
             os.environ.pop("QDNB_RUNS", None)
         else:

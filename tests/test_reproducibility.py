@@ -180,7 +180,7 @@ def test_seed_scores_and_claim_checks_on_a_hand_made_result():
     0.5 and 1.0 (gap 0.5 and 1.0); ME delivers 3.0 and 1.0, promised 0 and 0.5."""
     from types import SimpleNamespace
 
-    from qdnb.chapters.ch4_reproducibility import claim_checks, seed_scores
+    from qdnb.chapters.ch4_reproducibility import EnvironmentResult, claim_checks, seed_scores
 
     def method(distance, promised, spread, coverage, coverage_after):
         rep = SimpleNamespace(descriptors=np.array(promised, np.float32).reshape(2, 1, 1))
@@ -196,8 +196,12 @@ def test_seed_scores_and_claim_checks_on_a_hand_made_result():
             metrics_reassessed={"coverage": np.array(coverage_after)},
         )
 
-    res = SimpleNamespace(
-        goals=np.zeros((1, 1), np.float32),
+    res = EnvironmentResult(
+        "toy",
+        None,
+        np.zeros((1, 1), np.float32),
+        np.zeros((1, 1), np.float32),
+        0.0,
         methods={
             "ME-LS": method([1.0, 2.0], [0.5, 1.0], [0.1, 0.2], [0.5, 0.4], [0.5, 0.2]),
             "ME": method([3.0, 1.0], [0.0, 0.5], [0.3, 0.1], [0.8, 0.8], [0.4, 0.2]),

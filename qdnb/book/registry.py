@@ -40,8 +40,10 @@ class Chapter:
         return self.module.Config
 
     def config(self, scale: str):
-        """The chapter's frozen config at ``scale``."""
-        return self.module.SCALES[check_scale(scale)]
+        """The chapter's frozen config at ``scale`` (the scale is checked before the
+        chapter's module, and JAX with it, is imported)."""
+        check_scale(scale)
+        return self.module.SCALES[scale]
 
 
 CHAPTERS: tuple[Chapter, ...] = (
@@ -69,9 +71,7 @@ def chapter(name: str) -> Chapter:
 def config(name: str, scale: str):
     """The frozen config of chapter ``name`` at ``scale`` (``tiny``, ``small`` or
     ``paper``); a clear ``ValueError`` on an unknown name or scale, before any compute."""
-    chap = chapter(name)
-    check_scale(scale)
-    return chap.config(scale)
+    return chapter(name).config(scale)
 
 
 def toc() -> str:

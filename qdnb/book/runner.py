@@ -54,7 +54,7 @@ def fingerprint(name: str, scale: str, seed: int) -> str:
     """Hash of what an execution depends on: the notebook, every ``qdnb`` source
     file, the lock file, the scale and the seed."""
     h = hashlib.sha256(f"{name}|{scale}|{seed}".encode())
-    files = [paths.NOTEBOOKS / f"{name}.ipynb", paths.ROOT / "requirements.lock"]
+    files = [registry.chapter(name).notebook, paths.ROOT / "requirements.lock"]
     files += sorted((paths.ROOT / "qdnb").rglob("*.py"))
     for f in files:
         if f.exists():
@@ -159,10 +159,9 @@ def tidy_streams(path: Path) -> None:
         if cell.cell_type != "code":
             continue
         tags = cell.metadata.setdefault("tags", [])
+        # the page shows the one-line scale/seed/config header instead
         if "injected-parameters" in tags and "remove-cell" not in tags:
-            tags.append(
-                "remove-cell"
-            )  # the page shows the one-line scale/seed/config header instead
+            tags.append("remove-cell")
         merged = []
         for out in cell.outputs:
             if (
@@ -207,15 +206,25 @@ def output_problems(path: Path) -> list[str]:
                 if k.startswith("text/") and isinstance(v, str)
             ]
             for text in texts:
-                if out.get("output_type") == "stream" and _WARNING.search(text):
+                warning = _WARNING.search(text) if out.get("output_type") == "stream" else None
+                if warning:
                     problems.append(
-                        f"cell {i}: a warning: {_WARNING.search(text).group(0)!r}: "
-                        f"{text.strip()[:160]!r}"
+                        f"cell {i}: a warning: {warning.group(0)!r}: {text.strip()[:160]!r}"
                     )
                 problems += [
                     f"cell {i}: shows the machine path {leak!r}" for leak in leaks if leak in text
                 ]
     return problems
+
+
+def leaked_paths(html_dir: Path) -> list[str]:
+    """Rendered pages that show a path of this machine (``machine_paths``)."""
+    leaks = machine_paths()
+    found = []
+    for f in sorted(html_dir.rglob("*.html")):
+        text = f.read_text(errors="ignore")
+        found += [f"{f.relative_to(html_dir)}: {leak}" for leak in leaks if leak in text]
+    return found
 
 
 def run_notebook(
@@ -234,7 +243,7 @@ def run_notebook(
             return out
     record_path.unlink(missing_ok=True)
     start = time.time()
-    execute(paths.NOTEBOOKS / f"{name}.ipynb", out, {"scale": scale, "seed": seed}, name, progress)
+    execute(registry.chapter(name).notebook, out, {"scale": scale, "seed": seed}, name, progress)
     tidy_streams(out)
     problems = output_problems(out)
     if problems:
@@ -271,10 +280,11 @@ def status_table(scale: str) -> str:
         "| chapter | notebook | status at this scale | wall time | headline |",
         "|---|---|---|---|---|",
     ]
-    present = set(notebook_names())
-    for name, title in ((c.name, c.title) for c in registry.CHAPTERS):
-        summary = load_summary(scale, name) if name in present else None
-        if name not in present:
+    for chapter in registry.CHAPTERS:
+        name, title = chapter.name, chapter.title
+        present = chapter.notebook.exists()
+        summary = load_summary(scale, name) if present else None
+        if not present:
             lines.append(f"| {title} | — | planned, not yet in the book | — | — |")
         elif summary is None:
             lines.append(f"| {title} | [{name}](chapters/{name}) | no summary written | — | — |")
@@ -354,12 +364,7 @@ def build_book(scale: str, seed: int = 0, force: bool = False, progress: bool = 
     if proc.returncode != 0:
         raise RuntimeError(f"jupyter-book build failed (exit {proc.returncode}): {' '.join(cmd)}")
     html = paths.BOOK / "_build" / "html"
-    leaked = [
-        f"{f.relative_to(html)}: {leak}"
-        for f in sorted(html.rglob("*.html"))
-        for leak in machine_paths()
-        if leak in f.read_text(errors="ignore")
-    ]
+    leaked = leaked_paths(html)
     if leaked:
         raise RuntimeError(
             "the rendered book shows paths of this machine:\n  " + "\n  ".join(leaked[:20])

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Callable
 
 import jax
 import numpy as np
 
+from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
 from qdnb.envs.pointmaze import GOAL, in_goal
@@ -136,7 +138,12 @@ class Result:
 
     def me_repertoire(self, seed: int = 0) -> Repertoire:
         """MAP-Elites' final repertoire of one seed."""
-        return jax.tree.map(lambda x: x[seed], self.runs["ME"].final.repertoire)
+        return take(self.runs["ME"].final.repertoire, seed)
+
+    @cached_property
+    def metrics(self) -> dict[str, dict[str, Any]]:
+        """``method_metrics`` of this result, computed once."""
+        return method_metrics(self)
 
 
 def run(cfg: PrimerConfig, key: jax.Array, progress: bool = True) -> Result:
@@ -190,7 +197,7 @@ def summary_results(result: Result) -> dict[str, Any]:
         "episodes": cfg.episodes,
         "num_seeds": cfg.num_seeds,
     }
-    for name, m in method_metrics(result).items():
+    for name, m in result.metrics.items():
         results[name] = {
             "coverage": float(m["coverage_per_seed"].mean()),
             "coverage_per_seed": m["coverage_per_seed"],
@@ -211,7 +218,7 @@ def claim(result: Result) -> dict[str, Any]:
     seed, the fitness-driven GA in none.  Returns ``holds``, the counts, a
     ``headline`` and a ``verdict`` sentence."""
     n = result.config.num_seeds
-    m = method_metrics(result)
+    m = result.metrics
     ga, ns, me = (int(m[k]["reached_per_seed"].sum()) for k in ("GA", "NS", "ME"))
     holds = ns == n and me == n and ga == 0
     if holds:

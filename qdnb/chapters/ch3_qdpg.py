@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from qdnb.core.evaluation import Algorithm
+from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
 from qdnb.envs.pointmaze import in_goal
@@ -579,7 +580,7 @@ def fast_adaptation(cfg: QDPGConfig, antmaze: EnvironmentResult, seed: int) -> F
     ``cfg.adaptation_budget`` solutions to try for each goal."""
     grid, maze = antmaze.methods["QD-PG"].grid, antmaze.env
     valid = np.isfinite(grid["fitnesses"][0])
-    genotypes = jax.tree.map(lambda x: x[0], grid["genotypes"])
+    genotypes = take(grid["genotypes"], 0)
     network = MLP(cfg.antmaze.policy_hidden + (maze.action_size,), activation="relu")
     episode = jax.jit(
         lambda g, k: evaluate_policies(maze, network.apply, g, k, return_trajectory=True)

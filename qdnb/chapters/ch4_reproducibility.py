@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -283,6 +284,11 @@ class EnvironmentResult:
     fitness_offset: float
     methods: dict[str, MethodResult]
 
+    @cached_property
+    def scores(self) -> dict[str, dict[str, np.ndarray]]:
+        """``seed_scores`` of every method, computed once."""
+        return {name: seed_scores(self, name) for name in self.methods}
+
 
 def run_environment(
     cfg: ReproducibilityConfig,
@@ -426,7 +432,7 @@ def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str,
     for env_name, res in results_by_env.items():
         for ls, base in CLAIM_PAIRS:
             for metric, better in CLAIM_METRICS:
-                a, b = seed_scores(res, ls)[metric], seed_scores(res, base)[metric]
+                a, b = res.scores[ls][metric], res.scores[base][metric]
                 wins = int(np.sum(better(a, b)))
                 claim = (
                     f"{ls} keeps more coverage than {base} on reassessment"
@@ -465,7 +471,7 @@ def summary_results(
     for env_name, res in results_by_env.items():
         results[env_name] = {}
         for name, r in res.methods.items():
-            seeds = seed_scores(res, name)
+            seeds = res.scores[name]
             results[env_name][name] = {
                 **{
                     k: float(seeds[k].mean())

@@ -399,11 +399,12 @@ class SurpriseSearch:
         )
         return surprise, desc, truth[:, -1], pred[:, -1], fl.mass_drift(truth[..., :1])
 
-    def random_genotypes(self, key: jax.Array) -> dict[str, jax.Array]:
-        """Initial states as in training (``flow_lenia.initial_patches``): the matter
-        patch and the parameters by the world's ``p0`` rule."""
+    def random_genotypes(self, key: jax.Array, n: int | None = None) -> dict[str, jax.Array]:
+        """``n`` (default ``batch_size``) initial states as in training
+        (``flow_lenia.initial_patches``): the matter patch and the parameters by the
+        world's ``p0`` rule."""
         a, p = jax.vmap(fl.initial_patches, in_axes=(0, None))(
-            jax.random.split(key, self.batch_size), self.world
+            jax.random.split(key, self.batch_size if n is None else n), self.world
         )
         return {"a": a, "p": p}
 
@@ -433,7 +434,7 @@ class SurpriseSearch:
             centroids=grid_centroids(self.bins, self.low, self.high),
             batch_size=self.batch_size,
             scoring_fn=score,
-            init_fn=lambda key, n: self.random_genotypes(key),
+            init_fn=self.random_genotypes,
             variation_fn=mutate,
         )
 

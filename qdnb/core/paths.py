@@ -10,9 +10,8 @@ NOTEBOOKS = ROOT / "notebooks"
 BOOK = ROOT / "book"
 DATA = ROOT / "data"
 THESIS_DATA = DATA / "thesis"
-RUNS = Path(
-    os.environ.get("QDNB_RUNS", DATA / "runs")
-)  # QDNB_RUNS: elsewhere (the tests' nbmake run)
+# QDNB_RUNS puts the runs elsewhere (the tests' in-place nbmake run of the primer)
+RUNS = Path(os.environ.get("QDNB_RUNS", DATA / "runs"))
 
 
 def run_dir(scale: str, notebook: str, create: bool = True) -> Path:

@@ -23,9 +23,9 @@ METHOD_COLORS = {
     "D-PG": "#bcbd22",
     "Q-PG": "#393b79",
     "TD3": "#525252",  # Chapter 3
-    "flt": "#9467bd",
-    "persistence": "#7f7f7f",
-    "mean_frame": "#bcbd22",  # Chapter 5's predictors
+    "flt": "#8c6d31",
+    "persistence": "#e6ab02",
+    "mean_frame": "#1b9e77",  # Chapter 5's predictors
 }
 # How the environments are named in titles, tables and legends (as in the thesis).
 ENV_LABELS = {
@@ -35,13 +35,6 @@ ENV_LABELS = {
     "ant_omni": "Ant-Omni",
     "halfcheetah_uni": "Halfcheetah-Uni",
 }
-# How a method is named in legends and tables, where it differs from its key.
-METHOD_LABELS = {
-    "flt": "FLT",
-    "persistence": "persistence",
-    "mean_frame": "mean frame",
-    "Naive": "Naive",
-}
 
 
 def method_color(name: str) -> str:
@@ -49,10 +42,6 @@ def method_color(name: str) -> str:
     if name not in METHOD_COLORS:
         raise KeyError(f"no colour for method {name!r}; known: {', '.join(METHOD_COLORS)}")
     return METHOD_COLORS[name]
-
-
-def method_label(name: str) -> str:
-    return METHOD_LABELS.get(name, name)
 
 
 def set_style() -> None:

@@ -48,7 +48,7 @@ from qdnb.qd.low_spread import (
     insert_low_spread,
     low_spread_scores,
 )
-from qdnb.qd.map_elites import MapElites, MapElitesState  # noqa: F401  (MapElitesState: the state of the family)
+from qdnb.qd.map_elites import MapElites
 from qdnb.qd.metrics import ExplorationTrack
 from qdnb.qd.novelty import NoveltyArchive, knn_novelty
 from qdnb.qd.variation import isoline_variation
