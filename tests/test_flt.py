@@ -10,15 +10,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from qdnb.chapters import ch5_flow_lenia as chapter
 from qdnb.chapters.ch5_flow_lenia import (
+    HeldOut,
+    SearchResult,
     SurpriseSearch,
     SystemCriteria,
     centre_of_mass,
     evaluate,
     pattern_descriptors,
     pick_system,
+    spearman,
     world_statistics,
 )
+from qdnb.core.paths import NOTEBOOKS
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.models.lenia.flt import (
     FLT,
@@ -204,12 +209,13 @@ def test_surprise_search_keeps_the_most_surprising_per_cell(system):
         min_spread=0.0,
         max_spread=0.5,
     )
-    repertoire, history = search.run(
+    found = search.run(
         params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1, progress=False
     )
+    repertoire, history = found.repertoire, found.history
     assert history["surprise"].shape == (12,) and history["descriptors"].shape == (12, 2)
     filled = np.asarray(repertoire.filled)
-    assert filled.sum() >= 1
+    assert filled.sum() >= 1 and found.evaluations == 12
     # every elite is the best evaluation that landed in its cell
     centroids = np.asarray(repertoire.centroids)
     desc = np.clip(history["descriptors"], 0.0, 0.5)
@@ -223,10 +229,102 @@ def test_surprise_search_keeps_the_most_surprising_per_cell(system):
         float(repertoire.genotypes["a"].min()) >= 0.0
         and float(repertoire.genotypes["a"].max()) <= 1.0
     )
-    again, history2 = search.run(
+    # the world is deterministic: replayed with another key, each elite scores its stored surprise
+    np.testing.assert_allclose(
+        found.replayed[found.elites], found.elite_surprise[found.elites], rtol=1e-5
+    )
+    assert np.isnan(found.replayed[~filled]).all() and found.final_truth.shape == (9, 16, 16)
+    again = search.run(
         params, system, jax.random.PRNGKey(4), iterations=2, chunk_size=1, progress=False
     )
-    np.testing.assert_array_equal(history["surprise"], history2["surprise"])
+    np.testing.assert_array_equal(history["surprise"], again.history["surprise"])
+
+
+def test_held_out_derived_values_on_hand_made_errors():
+    flt = np.array([[0.1, 0.3], [0.2, 0.1], [0.1, 0.5]])  # 3 episodes, T = 2
+    errors = {
+        "flt": {"A": flt, "frame": flt},
+        "persistence": {"A": np.full((3, 2), 0.4), "frame": np.zeros((3, 2))},
+        "mean_frame": {"A": np.array([[0, 0.2], [0, 0.2], [0, 0.6]]), "frame": np.zeros((3, 2))},
+    }
+    held = HeldOut(errors, np.zeros(1), np.zeros(1), np.zeros(3))
+    np.testing.assert_allclose(held.median["flt"], [0.1, 0.3])
+    assert held.final == {"flt": 0.3, "persistence": 0.4, "mean_frame": 0.2}
+    assert not held.beats  # below persistence, not below the mean frame
+    assert held.grows == 2 and held.rise == pytest.approx(0.2)
+    assert held.share_below("flt", "mean_frame") == pytest.approx(2 / 3)
+
+
+def test_search_result_extremes_and_correlations_on_a_hand_made_repertoire():
+    fitnesses = jnp.array([0.5, -jnp.inf, 0.9, 0.1, 0.7])
+    repertoire = chapter.rep_lib.Repertoire(
+        {"a": jnp.zeros((5, 1))}, fitnesses, jnp.zeros((5, 2)), jnp.zeros((5, 2))
+    )
+    history = {
+        "surprise": np.array([1.0, 2.0, 3.0, 4.0]),
+        "descriptors": np.array([[0.1, 4.0], [0.2, 3.0], [0.3, 2.0], [0.4, 1.0]]),
+    }
+    replayed = np.array([0.5, np.nan, 0.8, 0.1, 0.7], np.float32)
+    found = SearchResult(repertoire, history, 2, replayed, None, None, 0.0)
+    picks = found.extremes(2)
+    assert list(picks["most surprising"]) == [2, 4] and list(picks["least surprising"]) == [3, 0]
+    assert list(found.extremes(3)["least surprising"]) == [3]  # never the same elite twice
+    assert found.replay_gap == pytest.approx(0.1, abs=1e-6)
+    assert found.correlations == {"centre-of-mass displacement": 1.0, "spread": -1.0}
+    assert list(found.random_batch) == [1.0, 2.0] and found.best == 4.0
+    assert spearman(np.array([1.0, 5.0, 2.0]), np.array([0.0, 9.0, 3.0])) == pytest.approx(1.0)
+
+
+def test_run_calls_the_notebook_stages_in_order_with_its_keys(monkeypatch):
+    calls = []
+
+    def record(name, value=None):
+        def stage(*args, **kwargs):
+            keys = [a for a in args if isinstance(a, jax.Array) and a.shape == (2,)]
+            calls.append((name, [np.asarray(k).tolist() for k in keys]))
+            return value if value is not None else dataclasses.make_dataclass("S", [])()
+
+        return stage
+
+    trained = dataclasses.make_dataclass("T", ["params", "mean_frames"])(None, None)
+    choice = dataclasses.make_dataclass("C", ["system"])(None)
+    search = dataclasses.make_dataclass("R", [("run", object)])(record("search"))
+    for name, value in (
+        ("random_gallery", None),
+        ("pick_system", choice),
+        ("compare_p0", None),
+        ("make_model", None),
+        ("train", trained),
+        ("evaluate", None),
+        ("diagnose", None),
+    ):
+        monkeypatch.setattr(chapter, name, record(name, value))
+    monkeypatch.setattr(chapter, "surprise_search", lambda cfg, model: search)
+    key = jax.random.PRNGKey(7)
+    result = chapter.run(config_for_run(), key, progress=False)
+    keys = jax.random.split(key, 5)
+    g, p, t, e, s = (np.asarray(k).tolist() for k in keys)
+    replay = np.asarray(jax.random.fold_in(keys[3], 2)).tolist()
+    assert calls == [
+        ("random_gallery", [g]),
+        ("pick_system", [p]),
+        ("compare_p0", [p]),
+        ("make_model", []),
+        ("train", [t]),
+        ("evaluate", [e]),
+        ("diagnose", [e, replay]),
+        ("search", [s]),
+    ]
+    assert isinstance(result, chapter.Result)
+    # the notebook draws the same five keys in the same order
+    setup = (NOTEBOOKS / "ch5_flow_lenia.ipynb").read_text()
+    assert "k_gallery, k_pick, k_train, k_eval, k_search = jax.random.split(key, 5)" in setup
+
+
+def config_for_run():
+    from qdnb.book.registry import config
+
+    return config("ch5_flow_lenia", "tiny")
 
 
 def test_world_statistics_on_hand_made_episodes():

@@ -18,7 +18,10 @@ baselines, and the surprise search of Section 5.3.2.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import jax
@@ -29,7 +32,15 @@ from qdnb.core.evaluation import Evaluation
 from qdnb.core.loops import scan_in_chunks
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.models.lenia.flow_lenia import FlowLeniaConfig
-from qdnb.models.lenia.flt import FLT, FLTConfig, frame_errors, unroll
+from qdnb.models.lenia.flt import (
+    FLT,
+    FLTConfig,
+    TrainResult,
+    frame_errors,
+    make_model,
+    train,
+    unroll,
+)
 from qdnb.qd import repertoire as rep_lib
 from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.map_elites import MapElites
@@ -157,7 +168,7 @@ def world_statistics(A: jax.Array, window: int = 5) -> dict[str, float]:
     }
 
 
-@dataclass
+@dataclass(frozen=True)
 class SystemChoice:
     system: fl.System
     index: int  # which candidate was kept (0 = the first drawn)
@@ -236,6 +247,65 @@ def pick_system(
     return SystemChoice(systems[index], index, stats, passed, patch)
 
 
+@dataclass(frozen=True)
+class Gallery:
+    """Random systems (Table 5.1), each from its own random initial state: ``A``
+    ``(systems, T + 1, H, W)`` and the largest relative change of mass along them."""
+
+    systems: fl.System
+    A: np.ndarray
+    drift: float
+
+
+def random_gallery(key: jax.Array, world: fl.FlowLeniaConfig, systems: int) -> Gallery:
+    """``systems`` random systems from random initial states (``flow_lenia.simulate_batch``)."""
+    drawn, episodes = fl.simulate_batch(key, world, systems)
+    drift = float(np.asarray(fl.mass_drift(episodes.A)).max())
+    return Gallery(drawn, np.asarray(episodes.A[..., 0]), drift)
+
+
+P0_RULES = ("patch", "cell")  # one parameter vector for the whole patch, or one per cell
+
+
+@dataclass(frozen=True)
+class P0Comparison:
+    """The two readings of Section 5.3.1's initial parameter map on one system:
+    per rule, ``probe_statistics`` and the final frames ``(examples, H, W)`` of the
+    same matter patches."""
+
+    statistics: dict[str, dict[str, float]]
+    finals: dict[str, np.ndarray]
+
+    @property
+    def sensitivity_ratio(self) -> float:
+        """How many times more a small nudge of ``A^0`` moves the ending with one
+        vector per cell than with one per patch."""
+        patch = max(self.statistics["patch"]["sensitivity"], 1e-12)
+        return self.statistics["cell"]["sensitivity"] / patch
+
+
+def compare_p0(
+    system: fl.System,
+    world: fl.FlowLeniaConfig,
+    key: jax.Array,
+    probes: int,
+    window: int = 5,
+    examples: int = 4,
+) -> P0Comparison:
+    """``probe_statistics`` of ``system`` under each rule of ``P0_RULES`` (the same
+    probes for both), and the final frames of ``examples`` episodes from the same
+    initial keys."""
+    statistics, finals = {}, {}
+    for rule in P0_RULES:
+        w_rule = dataclasses.replace(world, p0=rule)
+        statistics[rule] = probe_statistics(
+            system, w_rule, jax.random.fold_in(key, 2), probes, window
+        )
+        episodes = fl.simulate_system(system, jax.random.fold_in(key, 1), w_rule, examples)
+        finals[rule] = np.asarray(episodes.A[:, -1, ..., 0])
+    return P0Comparison(statistics, finals)
+
+
 # the predictors Figure 5.5 compares, each ``(model, params, episodes, mean_frames) -> frames 1..T``
 METHODS = {
     "flt": lambda model, params, truth, mean_frames: unroll(model, params, truth[:, 0]),
@@ -254,12 +324,45 @@ class HeldOut:
     "frame"]`` ``(episodes, T)`` for the predictions of ``x_1 .. x_T`` (the predictors
     of ``METHODS`` and ``"flt_teacher_forced"``, the FLT fed the true frames);
     ``truth`` and ``flt`` the first three episodes' frames; ``drift`` every episode's
-    mass drift (episodes on axis 0 everywhere)."""
+    mass drift (episodes on axis 0 everywhere); ``seconds`` the evaluation's wall time."""
 
     errors: dict[str, dict[str, np.ndarray]]
     truth: np.ndarray
     flt: np.ndarray
     drift: np.ndarray
+    seconds: float = 0.0
+
+    @cached_property
+    def median(self) -> dict[str, np.ndarray]:
+        """Per predictor, the median over episodes of the error on ``A`` at each timestep."""
+        return {name: np.median(e["A"], axis=0) for name, e in self.errors.items()}
+
+    @property
+    def final(self) -> dict[str, float]:
+        """Per predictor, the median final-frame error on ``A``."""
+        return {name: float(m[-1]) for name, m in self.median.items()}
+
+    @property
+    def beats(self) -> bool:
+        """The chapter's check: the FLT's median final-frame error is below both baselines'."""
+        final = self.final
+        return final["flt"] < final["persistence"] and final["flt"] < final["mean_frame"]
+
+    @property
+    def grows(self) -> int:
+        """Episodes whose FLT error on ``A`` is larger at ``t = T`` than at ``t = 1``."""
+        a = self.errors["flt"]["A"]
+        return int(np.sum(a[:, -1] > a[:, 0]))
+
+    @property
+    def rise(self) -> float:
+        """The median rise of the FLT's error on ``A`` from ``t = 1`` to ``t = T``."""
+        a = self.errors["flt"]["A"]
+        return float(np.median(a[:, -1] - a[:, 0]))
+
+    def share_below(self, a: str, b: str) -> float:
+        """The share of episodes whose final-frame error on ``A`` is lower for ``a`` than ``b``."""
+        return float(np.mean(self.errors[a]["A"][:, -1] < self.errors[b]["A"][:, -1]))
 
 
 def evaluate(
@@ -279,6 +382,7 @@ def evaluate(
     first three episodes' frames for the figures, ``drift`` every episode's mass drift."""
     if episodes < 1 or batch < 1:
         raise ValueError(f"episodes and batch must be positive, got {episodes} and {batch}")
+    start = time.perf_counter()
     mean_frames = jnp.asarray(mean_frames)
     parts: dict[str, list] = {
         "flt": [],
@@ -307,7 +411,11 @@ def evaluate(
         for name, ps in parts.items()
     }
     return HeldOut(
-        errors, np.concatenate(truth_kept)[:3], np.concatenate(flt_kept)[:3], np.concatenate(drifts)
+        errors,
+        np.concatenate(truth_kept)[:3],
+        np.concatenate(flt_kept)[:3],
+        np.concatenate(drifts),
+        time.perf_counter() - start,
     )
 
 
@@ -356,6 +464,71 @@ def pattern_descriptors(A0: jax.Array, AT: jax.Array, torus: bool = False) -> ja
     d2 = jnp.sum(offsets(cT, h, w, torus) ** 2, axis=-1)
     spread = jnp.sqrt(jnp.sum(mass * d2) / jnp.maximum(jnp.sum(mass), 1e-12))
     return jnp.stack([displacement, spread]) / max(h, w)
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """The surprise search's outcome: the final ``repertoire``; ``history``, per
+    evaluation (the random initial batch first), ``surprise``, ``descriptors`` (raw)
+    and ``drift``; every elite replayed once more with another key, per cell (NaN or
+    zero where empty): its surprise, the true final frame ``A^T`` and the FLT's."""
+
+    repertoire: rep_lib.Repertoire
+    history: dict[str, np.ndarray]
+    batch_size: int
+    replayed: np.ndarray  # (cells,)
+    final_truth: np.ndarray  # (cells, H, W)
+    final_flt: np.ndarray  # (cells, H, W)
+    seconds: float
+
+    @property
+    def filled(self) -> np.ndarray:
+        return np.asarray(self.repertoire.filled)
+
+    @property
+    def elites(self) -> np.ndarray:
+        """The filled cells' indices."""
+        return np.flatnonzero(self.filled)
+
+    @property
+    def elite_surprise(self) -> np.ndarray:
+        """The stored surprise of every cell (meaningless where empty)."""
+        return np.asarray(self.repertoire.fitnesses)
+
+    @property
+    def evaluations(self) -> int:
+        return len(self.history["surprise"])
+
+    @property
+    def random_batch(self) -> np.ndarray:
+        """The surprise of the first, random, batch of initial states."""
+        return self.history["surprise"][: self.batch_size]
+
+    @property
+    def best(self) -> float:
+        return float(np.nanmax(self.history["surprise"]))
+
+    @property
+    def replay_gap(self) -> float:
+        """The largest difference between an elite's stored and replayed surprise."""
+        e = self.elites
+        return float(np.max(np.abs(self.replayed[e] - self.elite_surprise[e])))
+
+    @cached_property
+    def correlations(self) -> dict[str, float]:
+        """Spearman's rank correlation of every evaluation's surprise with each descriptor."""
+        desc, surprise = self.history["descriptors"], self.history["surprise"]
+        names = ("centre-of-mass displacement", "spread")
+        return {name: spearman(desc[:, i], surprise) for i, name in enumerate(names)}
+
+    def extremes(self, k: int = 3) -> dict[str, np.ndarray]:
+        """The cells of the ``k`` most and the ``k`` least surprising elites (never the
+        same elite twice)."""
+        surprise = np.where(self.filled, self.elite_surprise, np.inf)
+        order = np.argsort(surprise)[: self.elites.size]  # filled cells, least first
+        most = order[::-1][:k]
+        least = np.array([c for c in order if c not in most][:k], dtype=int)
+        return {"most surprising": most, "least surprising": least}
 
 
 @dataclass(frozen=True)
@@ -446,20 +619,234 @@ class SurpriseSearch:
         iterations: int,
         chunk_size: int = 5,
         progress: bool = True,
-    ) -> tuple[rep_lib.Repertoire, dict[str, np.ndarray]]:
-        """``iterations`` MAP-Elites iterations after a random initial batch: the final
-        repertoire and, per evaluation (initial batch first), surprise, descriptors
-        and mass drift."""
+    ) -> SearchResult:
+        """``iterations`` MAP-Elites iterations after a random initial batch, then every
+        elite replayed with another key (``fold_in(key, 1)``): the world is
+        deterministic, so what MAP-Elites keeps must be the initial state's surprise,
+        not a lucky simulation's."""
         if iterations < 0:
             raise ValueError(f"iterations must be non-negative, got {iterations}")
+        start = time.perf_counter()
         me = self.map_elites(params, system)
         state, evs = scan_in_chunks(
             me.step, jax.jit(me.start)(key), iterations + 1, chunk_size, "surprise search", progress
         )
         history = {"surprise": evs.fitness, **evs.extra}
-        return state.repertoire, {
-            k: np.asarray(v).reshape((-1,) + v.shape[2:]) for k, v in history.items()
-        }
+        history = {k: np.asarray(v).reshape((-1,) + v.shape[2:]) for k, v in history.items()}
+        repertoire = state.repertoire
+        cells = repertoire.fitnesses.shape[0]
+        replayed = np.full(cells, np.nan, np.float32)
+        shape = (cells, self.world.height, self.world.width)
+        final_truth, final_flt = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+        elites = np.flatnonzero(np.asarray(repertoire.filled))
+        for i in range(0, elites.size, self.batch_size):
+            part = elites[i : i + self.batch_size]
+            genotypes = jax.tree.map(lambda x: x[part], repertoire.genotypes)
+            surprise, _, truth, pred, _ = self.evaluate(
+                params, system, genotypes, jax.random.fold_in(key, 1)
+            )
+            replayed[part] = np.asarray(surprise)
+            final_truth[part] = np.asarray(truth[..., 0])
+            final_flt[part] = np.asarray(pred[..., 0])
+        seconds = time.perf_counter() - start
+        return SearchResult(
+            repertoire, history, self.batch_size, replayed, final_truth, final_flt, seconds
+        )
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """How much of an episode's ending a predictor can read, and where the FLT stands
+    (the notebook's "Reading the check"):
+
+    - ``replay``: the median final-frame MSE on ``A`` between two simulations of the
+      same initial states with other keys; half of it (``floor``) is the error of the
+      best possible predictor;
+    - ``within_h``: the share of the final frames' variance across initial states
+      left within one parameter vector ``h`` (8 vectors x 8 matter patches);
+    - ``copy_A``: the final-frame error of copying ``A^{T-1}``;
+    - ``p_errors``: one step on ``P`` (per cell and channel) for the FLT fed true
+      frames, a copy of ``P^t`` and the mean frame."""
+
+    replay: float
+    within_h: float
+    copy_A: float
+    p_errors: dict[str, float]
+
+    @property
+    def floor(self) -> float:
+        return self.replay / 2
+
+
+def diagnose(
+    model: FLT,
+    params: Any,
+    mean_frames: np.ndarray,
+    world: fl.FlowLeniaConfig,
+    system: fl.System,
+    key: jax.Array,
+    batch: int,
+    replay_key: jax.Array,
+    vectors: int = 8,
+) -> Diagnosis:
+    """``Diagnosis`` on ``batch`` episodes drawn as ``evaluate`` draws its first batch
+    from ``key`` (replayed with ``replay_key``), and on ``vectors`` parameter vectors
+    times ``vectors`` matter patches."""
+    first = fl.frames(fl.simulate_system(system, jax.random.fold_in(key, 0), world, batch))
+    again = fl.rollout_batch(
+        system, fl.State(A=first[:, 0, ..., :1], P=first[:, 0, ..., 1:]), replay_key, world
+    )
+    final_A = np.asarray(first[:, -1, ..., :1])
+    replay = float(np.median(np.mean((np.asarray(again.A[:, -1]) - final_A) ** 2, axis=(1, 2, 3))))
+    # the same h for several matter patches: the variance left within one h
+    k_h, k_a = jax.random.split(jax.random.fold_in(key, 1))
+    patches = jax.vmap(fl.initial_patches, in_axes=(0, None))
+    hs = patches(jax.random.split(k_h, vectors), world)[1]
+    matter = patches(jax.random.split(k_a, vectors), world)[0]
+    finals = np.stack(
+        [
+            np.asarray(
+                fl.rollout_batch(
+                    system, jax.vmap(lambda a: fl.place_patch(a, h, world))(matter), k_a, world
+                ).A[:, -1, ..., 0]
+            )
+            for h in hs
+        ]
+    )  # (h, patch, H, W)
+    across = finals.reshape(-1, *finals.shape[2:]).var(axis=0)
+    within_h = float(np.mean(finals.var(axis=1)) / np.mean(across))
+    before_last = np.asarray(first[:, -2, ..., :1])
+    copy_A = float(np.median(np.mean((before_last - final_A) ** 2, axis=(1, 2, 3))))
+    # one step on P: the FLT fed true frames, copying x_t, and the mean frame
+    p_true = np.asarray(first[:, 1:, ..., 1:])
+    p_flt = np.asarray(model.apply(params, first[:, :-1])[..., 1:])
+    p_errors = {
+        "FLT, one step": float(np.mean((p_flt - p_true) ** 2)),
+        "copy of P^t": float(np.mean((np.asarray(first[:, :-1, ..., 1:]) - p_true) ** 2)),
+        "mean frame": float(np.mean((mean_frames[None, 1:, ..., 1:] - p_true) ** 2)),
+    }
+    return Diagnosis(replay, within_h, copy_A, p_errors)
+
+
+def spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman's rank correlation (no ties expected: continuous values)."""
+    rank = lambda v: np.argsort(np.argsort(v))
+    return float(np.corrcoef(rank(x), rank(y))[0, 1])
+
+
+@dataclass(frozen=True)
+class Result:
+    """One run of the chapter (``run``): every stage's result, in the chapter's order."""
+
+    cfg: FlowLeniaChapterConfig
+    gallery: Gallery
+    choice: SystemChoice
+    p0: P0Comparison
+    trained: TrainResult
+    held_out: HeldOut
+    diagnosis: Diagnosis
+    search: SearchResult
+
+    @property
+    def mass_drift_max(self) -> float:
+        """The largest relative change of mass over every episode simulated."""
+        return float(
+            max(
+                self.gallery.drift,
+                self.trained.max_drift,
+                self.held_out.drift.max(),
+                self.search.history["drift"].max(),
+            )
+        )
+
+
+def run(cfg: FlowLeniaChapterConfig, key: jax.Array, progress: bool = True) -> Result:
+    """The chapter from ``key``: the gallery, the system, the two ``P^0`` rules, the
+    FLT's training, its held-out evaluation and diagnosis, and the surprise search
+    (the notebook calls the same stages one by one, in this order, with these keys)."""
+    world = cfg.world
+    k_gallery, k_pick, k_train, k_eval, k_search = jax.random.split(key, 5)
+    gallery = random_gallery(k_gallery, world, cfg.gallery_systems)
+    criteria = SystemCriteria()
+    choice = pick_system(k_pick, world, cfg.system_candidates, cfg.system_probes, criteria)
+    p0 = compare_p0(choice.system, world, k_pick, cfg.system_probes, criteria.window)
+    model = make_model(world, cfg.flt)
+    trained = train(model, cfg.flt, world, choice.system, k_train, progress)
+    args = (model, trained.params, world, choice.system, trained.mean_frames, k_eval)
+    held_out = evaluate(*args, cfg.eval_episodes, cfg.eval_batch)
+    diagnosis = diagnose(
+        model,
+        trained.params,
+        trained.mean_frames,
+        world,
+        choice.system,
+        k_eval,
+        cfg.eval_batch,
+        jax.random.fold_in(k_eval, 2),
+    )
+    search = surprise_search(cfg, model).run(
+        trained.params, choice.system, k_search, cfg.search_iterations, cfg.search_chunk, progress
+    )
+    return Result(cfg, gallery, choice, p0, trained, held_out, diagnosis, search)
+
+
+def surprise_search(cfg: FlowLeniaChapterConfig, model: FLT) -> SurpriseSearch:
+    """The chapter's ``SurpriseSearch`` (its batch, mutation and grid from ``cfg``)."""
+    return SurpriseSearch(model, cfg.world, cfg.search_batch, cfg.search_sigma, cfg.search_bins)
+
+
+def summary_results(result: Result) -> dict[str, Any]:
+    """The chapter's ``summary.json`` results (the book's status table reads the headline)."""
+    held, diagnosis, search, trained = (
+        result.held_out,
+        result.diagnosis,
+        result.search,
+        result.trained,
+    )
+    final, beats = held.final, held.beats
+    index = result.choice.index
+    elites = search.elites
+    return {
+        "headline": f"FLT final-frame MSE {final['flt']:.4g} vs persistence "
+        f"{final['persistence']:.4g} and mean frame {final['mean_frame']:.4g}: "
+        f"{'below' if beats else 'not below'} both",
+        "mass_drift_max": result.mass_drift_max,
+        **{
+            f"{name}_mse_per_step": [float(x) for x in held.median[name]]
+            for name in ("flt", "persistence", "mean_frame", "flt_teacher_forced")
+        },
+        "flt_mse_final": final["flt"],
+        "persistence_mse_final": final["persistence"],
+        "mean_frame_mse_final": final["mean_frame"],
+        "flt_below_both_baselines": bool(beats),
+        "replay_mse_final": diagnosis.replay,
+        "best_predictor_floor_final": diagnosis.floor,
+        "frame_mse_final": {k: float(np.median(e["frame"][:, -1])) for k, e in held.errors.items()},
+        "train_loss_final": trained.final_loss,
+        "train_episodes": trained.episodes_seen,
+        "system_index": index,
+        "system_statistics": {k: float(v[index]) for k, v in result.choice.statistics.items()},
+        "world": result.cfg.world.describe(),
+        "p0_comparison": result.p0.statistics,
+        "within_h_variance_share": diagnosis.within_h,
+        "one_step_P_mse": diagnosis.p_errors,
+        "surprise_search": {
+            "evaluations": search.evaluations,
+            "best_surprise": search.best,
+            "median_surprise": float(np.median(search.history["surprise"])),
+            "random_median_surprise": float(np.median(search.random_batch)),
+            "filled_cells": int(elites.size),
+            "spearman": search.correlations,
+            "elites_stored_mean": float(search.elite_surprise[elites].mean()),
+            "elites_replayed_mean": float(search.replayed[elites].mean()),
+            "elites_replay_max_gap": search.replay_gap,
+        },
+        "wall_time_s": {
+            "train": round(trained.seconds, 1),
+            "evaluate": round(held.seconds, 1),
+            "search": round(search.seconds, 1),
+        },
+    }
 
 
 Config = FlowLeniaChapterConfig

@@ -20,3 +20,13 @@ def run_dir(scale: str, notebook: str, create: bool = True) -> Path:
     if create:
         path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def shown(path: Path) -> str:
+    """``path`` as a page may show it: relative to the repository, or to ``$QDNB_RUNS``
+    when the runs live elsewhere (never a path of the machine that built the page)."""
+    path = Path(path).resolve()
+    for base, prefix in ((ROOT, ""), (RUNS.resolve(), "$QDNB_RUNS/")):
+        if path.is_relative_to(base):
+            return prefix + str(path.relative_to(base))
+    return path.name

@@ -292,13 +292,19 @@ def frame_errors(pred: jax.Array, truth: jax.Array) -> dict[str, jax.Array]:
     }
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainResult:
     params: Any
     losses: np.ndarray  # (train_steps,) teacher-forced loss of every batch
     mean_frames: np.ndarray  # (T + 1, H, W, C) mean frame per timestep over all training episodes
     episodes_seen: int
     max_drift: float  # largest relative change of total mass over all training episodes
+    seconds: float = 0.0  # wall time of the training, compilation included
+
+    @property
+    def final_loss(self) -> float:
+        """The mean training loss over the last twentieth of the steps."""
+        return float(np.mean(self.losses[-max(1, len(self.losses) // 20) :]))
 
 
 def train(
@@ -323,6 +329,7 @@ def train(
     convolutions' gradients about 10x slower inside a loop than as a top-level
     computation, and a step (about half a second) dwarfs the host round-trip."""
 
+    began = time.perf_counter()
     k_init, k_train = jax.random.split(key)
     params = init_params(model, k_init)
     optimizer = make_optimizer(cfg.learning_rate)
@@ -365,4 +372,5 @@ def train(
         np.asarray(frame_sum / seen),
         seen,
         float(jnp.max(jnp.stack(drifts))),
+        time.perf_counter() - began,
     )
