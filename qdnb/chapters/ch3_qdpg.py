@@ -17,15 +17,18 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from qdnb.core.evaluation import Algorithm
 from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
+from qdnb.envs.pointmaze import GOAL as POINTMAZE_GOAL
 from qdnb.envs.pointmaze import in_goal
 from qdnb.envs.rollout import evaluate_policies
 from qdnb.nets.mlp import MLP
@@ -338,6 +341,9 @@ def final_grid(state: Any) -> dict[str, np.ndarray] | None:
     )
 
 
+ANTMAZE_SOLVED = -10.0  # Table 3.3: Ant-Maze is solved when the best reward exceeds this
+
+
 @dataclass(frozen=True)
 class MethodResult:
     """One method on one environment, all its seeds (axis 0 of every array).
@@ -357,6 +363,26 @@ class MethodResult:
     cumulative_steps: np.ndarray
     seconds: float
     steady_seconds_per_iteration: float
+
+    @cached_property
+    def exit_steps(self) -> np.ndarray:
+        """Point-Maze: per seed, ``steps_to_exit`` (``nan`` where no episode ended in
+        the exit zone)."""
+        return steps_to_exit(self)
+
+    @property
+    def reached_exit(self) -> np.ndarray:
+        """Point-Maze: per seed, whether an evaluated episode ended in the exit zone."""
+        return ~np.isnan(self.exit_steps)
+
+    def steps_to_goal(self, solved: float = ANTMAZE_SOLVED) -> list[float]:
+        """Ant-Maze (Table 3.3): per seed, the environment steps when the best reward
+        first exceeded ``solved`` (``inf`` if it never did)."""
+        hit = self.history["max_fitness"] > solved
+        return [
+            float(self.cumulative_steps[s][hit[s]][0]) if hit[s].any() else float("inf")
+            for s in range(hit.shape[0])
+        ]
 
 
 @dataclass(frozen=True)
@@ -484,7 +510,7 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
         seeds = f" (seeds: {', '.join(f'{v:.1f}' for v in p)})" if len(p) > 1 else ""
         return f"{p.mean():.1f}{seeds}"
 
-    reached = reached_goal(pm["QD-PG"].history["descriptors"])
+    reached = pm["QD-PG"].reached_exit
     return [
         (
             "QD-PG reaches the exit zone (every seed)",
@@ -525,10 +551,8 @@ def method_summaries(results_by_env: dict[str, EnvironmentResult]) -> dict[str, 
                 "run_seconds": round(r.seconds, 1),
             }
             if env_name == "pointmaze":
-                entry["reached_goal"] = bool(reached_goal(r.history["descriptors"]).any())
-                entry["steps_to_exit"] = [
-                    None if np.isnan(v) else float(v) for v in steps_to_exit(r)
-                ]
+                entry["reached_goal"] = bool(r.reached_exit.any())
+                entry["steps_to_exit"] = [None if np.isnan(v) else float(v) for v in r.exit_steps]
             out[env_name][name] = entry
         for name in QDPG_METHODS:
             if name not in res.methods:
@@ -612,6 +636,67 @@ def fast_adaptation(cfg: QDPGConfig, antmaze: EnvironmentResult, seed: int) -> F
         np.asarray(rs["best_score"]),
         exhaustive,
     )
+
+
+# ----- the thesis's references: a hand-written path, and the chapter's summary -----
+
+
+def waypoint_policy(params: Any, obs: jax.Array) -> jax.Array:
+    """A hand-written Point-Maze path: left through the lower wall's gap, right through
+    the upper one, then to the exit (a reference for Table 3.4's returns)."""
+    del params
+    target = jnp.where(
+        obs[1] < -0.45,
+        jnp.array([-0.6, -0.42]),
+        jnp.where(
+            obs[1] < 0.25,
+            jnp.where(obs[0] < 0.55, jnp.array([0.65, 0.0]), jnp.array([0.6, 0.3])),
+            jnp.asarray(POINTMAZE_GOAL),
+        ),
+    )
+    return jnp.clip((target - obs) * 10.0, -1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class HandPath:
+    """``waypoint_policy``'s returns and whether each episode ended in the exit zone."""
+
+    returns: np.ndarray
+    exited: np.ndarray
+
+
+def hand_path(env: Env, key: jax.Array, starts: int = 256) -> HandPath:
+    """``waypoint_policy`` on Point-Maze from ``starts`` random starts."""
+    out = evaluate_policies(env, waypoint_policy, jnp.zeros((starts,)), key)
+    return HandPath(np.asarray(out.fitness), in_exit_zone(np.asarray(out.descriptor)))
+
+
+def summary_results(
+    cfg: QDPGConfig,
+    results_by_env: dict[str, EnvironmentResult],
+    fast: FastAdaptation,
+    hand: HandPath,
+) -> dict[str, Any]:
+    """The chapter's ``summary.json`` results: the claims, every method's entry
+    (``method_summaries``), the fast adaptation, Ant-Maze's steps to goal, Point-Maze's
+    time per iteration and the hand-written path's return."""
+    held = claims(results_by_env)
+    count = sum(ok for _, ok, _ in held)
+    pm = results_by_env["pointmaze"].methods
+    return {
+        "headline": f"{count}/{len(held)} Point-Maze claims hold",
+        "claims_held": count,
+        "claims_total": len(held),
+        "num_seeds": cfg.num_seeds,
+        "pointmaze_qdpg_seeds": cfg.seeds("pointmaze", "QD-PG"),
+        "fast_adaptation": fast.summary(),
+        **method_summaries(results_by_env),
+        "antmaze_steps_to_goal": results_by_env["antmaze"].methods["QD-PG"].steps_to_goal(),
+        "pointmaze_seconds_per_iteration": {
+            name: r.steady_seconds_per_iteration for name, r in pm.items()
+        },
+        "pointmaze_hand_path_return": float(hand.returns.mean()),
+    }
 
 
 # The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
