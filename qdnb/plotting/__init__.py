@@ -195,3 +195,55 @@ def panel_grid(
     for ax in flat[n:]:
         ax.set_visible(False)
     return fig, flat[:n]
+
+
+def show_frame(
+    ax: plt.Axes, image: np.ndarray, vmax: float | None = None, cmap: str = "magma"
+) -> None:
+    """One frame of a grid of frames (a world's state, a density): the image from 0 to
+    ``vmax`` (its own maximum when ``None``), without ticks or grid."""
+    ax.imshow(np.asarray(image), cmap=cmap, vmin=0, vmax=vmax)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.grid(False)
+
+
+def reward_arrows(ax: plt.Axes, goal, low, high, n: int = 15) -> None:
+    """The direction a distance-to-goal reward pulls towards, on an ``n x n`` lattice
+    over ``[low, high]`` (Figure 3.4's deceptive gradients)."""
+    xs, ys = np.meshgrid(np.linspace(low[0], high[0], n), np.linspace(low[1], high[1], n))
+    d = np.stack([goal[0] - xs, goal[1] - ys])
+    d = d / np.maximum(np.linalg.norm(d, axis=0), 1e-9)
+    ax.quiver(xs, ys, d[0], d[1], color="tab:blue", alpha=0.8, scale=n * 1.4, width=0.004)
+
+
+def positions_over_time(ax: plt.Axes, descriptors: np.ndarray, title: str):
+    """Every evaluated policy's final position ``(iterations, batch, 2)``, coloured by
+    iteration (Figure 3.8); returns the scatter for a colour bar."""
+    it = np.broadcast_to(np.arange(descriptors.shape[0])[:, None], descriptors.shape[:2])
+    sc = ax.scatter(
+        descriptors[..., 0].ravel(),
+        descriptors[..., 1].ravel(),
+        c=it.ravel(),
+        cmap="cool",
+        s=4,
+        zorder=3,
+    )
+    ax.set_title(title, fontsize=10)
+    return sc
+
+
+def outline_pruning(ax: plt.Axes, name: str, low, high, tiles: int, resolution: int = 400) -> None:
+    """The region a QDT pruning removes (Figures 4.10 and 4.11), outlined from the
+    same rule that prunes (``removed_region``); nothing for the random prunings."""
+    from qdnb.models.qdt.data import removed_region
+
+    xs, ys = np.meshgrid(
+        np.linspace(low[0], high[0], resolution), np.linspace(low[1], high[1], resolution)
+    )
+    points = np.stack([xs.ravel(), ys.ravel()], -1)
+    mask = removed_region(name, points, low, high, tiles).reshape(xs.shape)
+    if mask.any():
+        ax.contour(
+            xs, ys, mask.astype(float), levels=[0.5], colors="c", linewidths=1.0, linestyles="--"
+        )
