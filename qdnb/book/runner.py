@@ -124,6 +124,8 @@ def execute(
             progress_bar=False,
             log_output=False,
             stderr_file=sys.stderr if progress else None,
+            # the kernel's own log (its connection notices) is not the chapter's output
+            extra_arguments=["--IPKernelApp.log_level=ERROR"],
         )
     except pm.PapermillExecutionError as err:
         first_line = (err.source or "").strip().splitlines()[:1]
