@@ -4,6 +4,7 @@ import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from qdnb.chapters import ch2_primer
 from qdnb.envs.pointmaze import GOAL
@@ -56,29 +57,71 @@ def test_primer_metrics_and_claim_on_hand_made_histories():
 def test_qdt_claim_checks_on_hand_made_seeds():
     from qdnb.chapters import ch4_qdt
 
-    def seed(ls, me_qdt, me_rep):
-        return {
-            "qdt": {"ME-LS": {"avg_distance": ls}, "ME": {"avg_distance": me_qdt}},
-            "repertoire": {"ME": {"distance": np.array([me_rep, me_rep])}},
-        }
+    def result(*seeds):  # each seed: (QDT(ME-LS), QDT(ME), the ME repertoire) distances
+        ls, me_qdt, me_rep = (np.array(v) for v in zip(*seeds))
+        return SimpleNamespace(
+            qdt={
+                "ME-LS": SimpleNamespace(avg_distance=ls),
+                "ME": SimpleNamespace(avg_distance=me_qdt),
+            },
+            repertoire={"ME": ch4_qdt.Scores(np.stack([me_rep, me_rep], 1), np.zeros((3, 2)))},
+        )
 
-    res = SimpleNamespace(seeds=[seed(1.0, 2.0, 0.5), seed(1.0, 3.0, 2.0), seed(1.0, 0.5, 3.0)])
+    res = result((1.0, 2.0, 0.5), (1.0, 3.0, 2.0), (1.0, 0.5, 3.0))
     checks = {c["claim"]: c for c in ch4_qdt.claim_checks({"toy": res})}
     vs_rep = checks["QDT(ME-LS) closer to the goals than ME"]
     vs_qdt = checks["QDT(ME-LS) closer to the goals than QDT (ME)"]
     assert vs_rep["holds"] and vs_rep["seeds where it holds"] == "2/3"  # 1.0 < 1.83 on the mean
     assert vs_qdt["holds"] and vs_qdt["QDT (ME)"] == round(5.5 / 3, 4)
-    worse = SimpleNamespace(seeds=[seed(1.0, 0.9, 0.9), seed(1.0, 5.0, 5.0), seed(1.0, 0.8, 0.8)])
+    worse = result((1.0, 0.9, 0.9), (1.0, 5.0, 5.0), (1.0, 0.8, 0.8))
     assert not any(c["holds"] for c in ch4_qdt.claim_checks({"toy": worse}))  # mean yes, 1/3 seeds
 
 
 def test_qdt_results_stack_a_quantity_over_the_seeds_that_have_it():
-    from qdnb.chapters.ch4_qdt import EnvironmentResult
+    from qdnb.chapters.ch4_qdt import EnvironmentResult, QDTRun
 
-    seeds = (
-        {"qdt": {"ME": {"avg_distance": 1.0}, "Naive": {"avg_distance": 4.0}}},
-        {"qdt": {"ME": {"avg_distance": 2.0}}},  # a claim-only seed: no Naive QDT
+    def qdt(distance):
+        return {
+            "epochs": np.array([1, 2]),
+            **{k: np.zeros(2) for k in ("avg_distance_curve", "max_fitness_curve", "loss")},
+            **{k: np.full(3, distance) for k in ("distance", "spread")},
+            "best_epoch": 2,
+            "avg_distance": distance,
+            "avg_spread": 0.0,
+            "dataset_size": 10,
+            "seconds": 1.0,
+        }
+
+    def seed(full, **qdts):
+        parts = ("repertoire", "teachers", "selection", "datasets", "generalization")
+        return {"qdt": qdts, "full": full} | {p: {} for p in parts}
+
+    seeds = [seed(True, ME=qdt(1.0), Naive=qdt(4.0)), seed(False, ME=qdt(2.0))]  # no Naive QDT
+    res = EnvironmentResult.collect(
+        "toy", (0.0,), (1.0,), np.zeros((2, 1)), np.zeros((3, 1)), {}, seeds
     )
-    res = EnvironmentResult("toy", (0.0,), (1.0,), np.zeros((2, 1)), np.zeros((3, 1)), {}, seeds)
-    assert res.stack("qdt", "ME", "avg_distance").tolist() == [1.0, 2.0]
-    assert res.stack("qdt", "Naive", "avg_distance").tolist() == [4.0]
+    assert res.qdt["ME"].avg_distance.tolist() == [1.0, 2.0]
+    assert res.qdt["Naive"].avg_distance.tolist() == [4.0]
+    assert res.qdt["ME"].distance.shape == (2, 3) and res.qdt["ME"].epochs.tolist() == [1, 2]
+    assert res.full_seeds == 1 and isinstance(res.qdt["ME"], QDTRun)
+    assert res.qdt["ME"].avg_distance_removed is None  # only the tiles and upper prunings
+
+
+def test_qdt_data_floor_selection_summary_and_nearest_half_on_hand_made_values():
+    from qdnb.chapters import ch4_qdt
+    from qdnb.models.qdt.data import Selection
+
+    goals = np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [4.0, 0.0]])
+    data = np.array([[0.0, 0.0]])
+    assert ch4_qdt.data_floor(goals, data) == pytest.approx((0 + 1 + 3 + 4) / 4)
+    res = SimpleNamespace(goals=goals, datasets={"ME-LS": (data,)})
+    assert ch4_qdt.nearest_half(res).tolist() == [True, True, False, False]
+
+    def selection(cells, hits):
+        cells, hits = np.array(cells), np.array(hits)
+        return Selection(cells, cells, hits, hits, cells, hits, hits)
+
+    res = SimpleNamespace(selection={"ME": (selection([1, 2], [1.0, 0.5]), selection([3], [0.0]))})
+    entry = ch4_qdt.selection_summary(res)["ME"]
+    assert entry["zones_with_data"] == 1.5 and entry["demonstrator_hit_rate"] == 0.375
+    assert entry["seeds"] == {"zones_with_data": [2, 1], "demonstrator_hit_rate": [0.75, 0.0]}

@@ -6,8 +6,11 @@ keeps from each (the QDT's demonstrators); the datasets (Section 4.4.4) of ME,
 ME-LS, PGA-ME, PGA-ME-LS and Naive; a QDT trained on each (Figure 4.7, Table 4.4,
 Figure 4.14); and a QDT trained on each pruned ME-LS dataset (Figures 4.10 and
 4.11).  The other seeds do the same for ME and ME-LS only (``CLAIM_SOURCES``, what
-the accuracy claim compares).  Everything comes back as numpy arrays; the notebook
-draws and tabulates.
+the accuracy claim compares).  Everything comes back as frozen results with the
+seeds on axis 0 (``EnvironmentResult``: ``Scores`` and ``QDTRun`` per method); the
+derived values (``selection_summary``, ``data_floor``, ``nearest_half``), the
+claim (``claim_checks``) and ``summary_results`` are here; the notebook draws and
+tabulates.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from qdnb.models.qdt.data import (
     NAIVE,
     PRUNINGS,
     SOURCES,
+    Selection,
     naive_episodes_per_policy,
     prune,
     record,
@@ -192,13 +196,77 @@ def load_or_recompute_repertoires(
 
 
 @dataclass(frozen=True)
+class Scores:
+    """Stored policies played on the evaluation goals (Section 4.5.2), seeds on axis 0:
+    per goal the ``distance`` to it and the ``spread`` of the episodes ``(seeds,
+    goals)``; ``filled`` the repertoire's stored policies per seed, where known."""
+
+    distance: np.ndarray
+    spread: np.ndarray
+    filled: np.ndarray | None = None
+
+    @property
+    def avg_distance(self) -> np.ndarray:
+        """Per seed, the mean distance over the goals."""
+        return self.distance.mean(axis=1)
+
+    @property
+    def avg_spread(self) -> np.ndarray:
+        return self.spread.mean(axis=1)
+
+
+@dataclass(frozen=True)
+class QDTRun:
+    """One QDT per seed trained on one dataset, seeds on axis 0: the evaluation
+    ``epochs`` and per seed the curves at them, the training ``loss`` per epoch, the
+    ``best_epoch`` (the one kept) and its scores on the goals; for the ``tiles`` and
+    ``upper`` prunings, the mean distance to the goals inside and outside the
+    removed region."""
+
+    epochs: np.ndarray  # (evaluations,)
+    avg_distance_curve: np.ndarray  # (seeds, evaluations)
+    max_fitness_curve: np.ndarray  # (seeds, evaluations)
+    loss: np.ndarray  # (seeds, epochs)
+    best_epoch: np.ndarray  # (seeds,)
+    avg_distance: np.ndarray  # (seeds,)
+    avg_spread: np.ndarray  # (seeds,)
+    distance: np.ndarray  # (seeds, goals)
+    spread: np.ndarray  # (seeds, goals)
+    dataset_size: np.ndarray  # (seeds,)
+    seconds: np.ndarray  # (seeds,)
+    avg_distance_removed: np.ndarray | None = None
+    avg_distance_kept: np.ndarray | None = None
+
+    @classmethod
+    def stack(cls, runs: list[dict[str, Any]]) -> QDTRun:
+        """The per-seed entries of one dataset's QDTs, stacked on axis 0."""
+        fields = {f.name for f in dataclasses.fields(cls)} - {"epochs"}
+        return cls(
+            epochs=np.asarray(runs[0]["epochs"]),
+            **{k: np.stack([np.asarray(r[k]) for r in runs]) for k in fields if k in runs[0]},
+        )
+
+
+def by_name(per_seed: list[dict[str, Any]], part: str) -> dict[str, list[Any]]:
+    """``seed[part][name]`` of every seed that has it, by name, in seed order (the
+    claim's sources run on every seed, the others on the first ``full_seeds``, so
+    position ``i`` of each list is seed ``i``)."""
+    out: dict[str, list[Any]] = {}
+    for seed in per_seed:
+        for name, value in seed[part].items():
+            out.setdefault(name, []).append(value)
+    return out
+
+
+@dataclass(frozen=True)
 class EnvironmentResult:
-    """Every experiment of the chapter on one environment: the descriptor box
-    (``low``, ``high``), the selection ``zones`` and evaluation ``goals`` (their own
-    CVTs), the goals each pruning removes, and one entry per seed (``seeds[i][part]
-    [name]``, ``part`` one of "repertoire", "selection", "teachers", "datasets", "qdt"
-    and "generalization"; the seeds past ``full_seeds`` hold only ``CLAIM_SOURCES``).
-    ``stack`` gathers one quantity over the seeds that have it, seeds on axis 0."""
+    """Every experiment of the chapter on one environment, seeds on axis 0: the
+    descriptor box (``low``, ``high``), the selection ``zones`` and evaluation
+    ``goals`` (their own CVTs), the goals each pruning removes; per source the
+    repertoire's and its kept policies' (``teachers``) ``Scores``, the zone
+    ``selection`` and the ``datasets``' descriptors (one per seed: their sizes
+    differ); per dataset the ``qdt`` and per pruning the ``generalization``
+    ``QDTRun``.  The seeds past ``full_seeds`` hold only ``CLAIM_SOURCES``."""
 
     env_name: str
     low: tuple[float, ...]
@@ -206,21 +274,60 @@ class EnvironmentResult:
     zones: np.ndarray
     goals: np.ndarray
     removed_goals: dict[str, np.ndarray]
-    seeds: tuple[dict[str, Any], ...]
+    repertoire: dict[str, Scores]
+    teachers: dict[str, Scores]
+    selection: dict[str, tuple[Selection, ...]]
+    datasets: dict[str, tuple[np.ndarray, ...]]
+    qdt: dict[str, QDTRun]
+    generalization: dict[str, QDTRun]
+    naive_episodes_per_policy: tuple[int, ...]
+    full_seeds: int
     seconds: float = float("nan")
 
-    def stack(self, part: str, name: str, key: str | None = None) -> np.ndarray:
-        """``seed[part][name][key]`` (or the attribute ``key`` of a ``Selection``)
-        of every seed that has it, stacked on axis 0."""
-        values = seeds_with(self, part, name)
-        if key is not None:
-            values = [v[key] if isinstance(v, dict) else getattr(v, key) for v in values]
-        return np.stack([np.asarray(v) for v in values])
+    @classmethod
+    def collect(
+        cls,
+        env_name: str,
+        low: tuple[float, ...],
+        high: tuple[float, ...],
+        zones: np.ndarray,
+        goals: np.ndarray,
+        removed_goals: dict[str, np.ndarray],
+        per_seed: list[dict[str, Any]],
+    ) -> EnvironmentResult:
+        """The result from ``run_environment``'s per-seed entries."""
 
+        def scores(part: str) -> dict[str, Scores]:
+            return {
+                name: Scores(
+                    np.stack([s["distance"] for s in seeds]),
+                    np.stack([s["spread"] for s in seeds]),
+                    np.array([s["filled"] for s in seeds]) if "filled" in seeds[0] else None,
+                )
+                for name, seeds in by_name(per_seed, part).items()
+            }
 
-def seeds_with(result: EnvironmentResult, part: str, name: str) -> list[Any]:
-    """``seed[part][name]`` of every seed of ``result`` that has it."""
-    return [s[part][name] for s in result.seeds if name in s[part]]
+        def runs(part: str) -> dict[str, QDTRun]:
+            return {name: QDTRun.stack(r) for name, r in by_name(per_seed, part).items()}
+
+        return cls(
+            env_name,
+            low,
+            high,
+            zones,
+            goals,
+            removed_goals,
+            repertoire=scores("repertoire"),
+            teachers=scores("teachers"),
+            selection={k: tuple(v) for k, v in by_name(per_seed, "selection").items()},
+            datasets={k: tuple(v) for k, v in by_name(per_seed, "datasets").items()},
+            qdt=runs("qdt"),
+            generalization=runs("generalization"),
+            naive_episodes_per_policy=tuple(
+                s["naive_episodes_per_policy"] for s in per_seed if "naive_episodes_per_policy" in s
+            ),
+            full_seeds=sum(bool(s["full"]) for s in per_seed),
+        )
 
 
 def num_seeds_of(repertoires: dict[str, Any]) -> int:
@@ -372,8 +479,8 @@ def run_environment(
             seed["generalization"][name] = res
         seed["datasets"] = {name: np.asarray(d.bd) for name, d in {**data, **pruned}.items()}
         per_seed.append(seed)
-    return EnvironmentResult(
-        env_name, low, high, np.asarray(zones), np.asarray(goals), removed, tuple(per_seed)
+    return EnvironmentResult.collect(
+        env_name, low, high, np.asarray(zones), np.asarray(goals), removed, per_seed
     )
 
 
@@ -415,9 +522,9 @@ def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str,
     checks = []
     for env_name, res in results_by_env.items():
         per_seed = {
-            "QDT (ME-LS)": np.array([s["qdt"]["ME-LS"]["avg_distance"] for s in res.seeds]),
-            "QDT (ME)": np.array([s["qdt"]["ME"]["avg_distance"] for s in res.seeds]),
-            "ME": np.array([s["repertoire"]["ME"]["distance"].mean() for s in res.seeds]),
+            "QDT (ME-LS)": res.qdt["ME-LS"].avg_distance,
+            "QDT (ME)": res.qdt["ME"].avg_distance,
+            "ME": res.repertoire["ME"].avg_distance,
         }
         for other in ("ME", "QDT (ME)"):
             a, b = per_seed["QDT (ME-LS)"], per_seed[other]
@@ -433,6 +540,90 @@ def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str,
                 }
             )
     return checks
+
+
+def selection_summary(res: EnvironmentResult) -> dict[str, dict[str, Any]]:
+    """Per source, the zone selection (Section 4.4.4): the zones that got a
+    demonstrator and the share of the kept policies' selection episodes that landed
+    in their zone, on the mean over seeds and per seed."""
+    out = {}
+    for m, selections in res.selection.items():
+        zones = [int(x.cells.size) for x in selections]
+        hit = [float(x.hit_rate.mean()) for x in selections]
+        out[m] = {
+            "zones_with_data": float(np.mean(zones)),
+            "demonstrator_hit_rate": float(np.mean(hit)),
+            "seeds": {"zones_with_data": zones, "demonstrator_hit_rate": hit},
+        }
+    return out
+
+
+def data_floor(goals: np.ndarray, descriptors: np.ndarray) -> float:
+    """The mean distance from each goal to the nearest final position in a dataset:
+    what a QDT that reproduced its data exactly would score."""
+    gaps = np.linalg.norm(goals[:, None] - descriptors[None], axis=-1)
+    return float(np.min(gaps, axis=1).mean())
+
+
+def nearest_half(res: EnvironmentResult, seed: int = 0) -> np.ndarray:
+    """The goals nearer the ME-LS data of ``seed`` than the median goal is."""
+    gaps = np.linalg.norm(res.goals[:, None] - res.datasets["ME-LS"][seed][None], axis=-1)
+    covered = np.min(gaps, axis=1)
+    return covered <= np.median(covered)
+
+
+def summary_results(cfg: QDTConfig, results_by_env: dict[str, EnvironmentResult]) -> dict[str, Any]:
+    """The chapter's ``summary.json`` results: the claim checks, per environment and
+    dataset the QDT's scores (with the selection's for the sources), the repertoires'
+    scores and the generalisation experiments."""
+    checks = claim_checks(results_by_env)
+    held = sum(c["holds"] for c in checks)
+    results: dict[str, Any] = {
+        "headline": f"{held}/{len(checks)} claim comparisons hold",
+        "claims_held": held,
+        "claims_total": len(checks),
+        "num_seeds": cfg.num_seeds,
+        "repertoires": {},
+        "generalization": {},
+        "descriptor_bounds": {
+            e: {"low": list(res.low), "high": list(res.high)} for e, res in results_by_env.items()
+        },
+        "wall_time_per_environment_s": {
+            e: round(res.seconds, 1) for e, res in results_by_env.items()
+        },
+    }
+    for env_name, res in results_by_env.items():
+        selection = selection_summary(res)
+        results[env_name] = {
+            name: {
+                "avg_distance": float(q.avg_distance.mean()),
+                "avg_spread": float(q.avg_spread.mean()),
+                "best_epoch": int(np.median(q.best_epoch)),
+                "seeds": len(q.best_epoch),
+            }
+            | {
+                k: selection[name][k]
+                for k in ("zones_with_data", "demonstrator_hit_rate")
+                if name in selection
+            }
+            for name, q in ((n, res.qdt[n]) for n in DATASETS)
+        }
+        results["repertoires"][env_name] = {
+            m: {
+                "avg_distance": float(res.repertoire[m].avg_distance.mean()),
+                "avg_spread": float(res.repertoire[m].avg_spread.mean()),
+            }
+            for m in SOURCES
+        }
+        results["generalization"][env_name] = {}
+        for n in PRUNINGS:
+            g = res.generalization[n]
+            entry = {"avg_distance": float(g.avg_distance.mean())}
+            if g.avg_distance_removed is not None:
+                entry["avg_distance_removed"] = float(g.avg_distance_removed.mean())
+                entry["avg_distance_kept"] = float(g.avg_distance_kept.mean())
+            results["generalization"][env_name][n] = entry
+    return results
 
 
 Config = QDTConfig

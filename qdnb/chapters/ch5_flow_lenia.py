@@ -14,6 +14,10 @@ baselines, and the surprise search of Section 5.3.2.
 - ``surprise_search``: MAP-Elites over initial states (matter and parameter
   patches), with the FLT's final-frame error on ``A`` as fitness ("surprise") and
   two descriptors of the final pattern (``pattern_descriptors``).
+
+``run(cfg, key)`` chains the stages in the notebook's order (``random_gallery``,
+``pick_system``, ``compare_p0``, the FLT's training, ``evaluate``, ``diagnose``, the
+surprise search) into a frozen ``Result``; ``summary_results`` writes its summary.
 """
 
 from __future__ import annotations

@@ -234,8 +234,8 @@ def positions_over_time(ax: plt.Axes, descriptors: np.ndarray, title: str):
 
 
 def outline_pruning(ax: plt.Axes, name: str, low, high, tiles: int, resolution: int = 400) -> None:
-    """The region a QDT pruning removes (Figures 4.10 and 4.11), outlined from the
-    same rule that prunes (``removed_region``); nothing for the random prunings."""
+    """The region a QDT pruning removes (Figures 4.10 and 4.11), tinted and outlined
+    from the same rule that prunes (``removed_region``); nothing for the random prunings."""
     from qdnb.models.qdt.data import removed_region
 
     xs, ys = np.meshgrid(
@@ -244,6 +244,7 @@ def outline_pruning(ax: plt.Axes, name: str, low, high, tiles: int, resolution: 
     points = np.stack([xs.ravel(), ys.ravel()], -1)
     mask = removed_region(name, points, low, high, tiles).reshape(xs.shape)
     if mask.any():
+        ax.contourf(xs, ys, mask.astype(float), levels=[0.5, 1.5], colors=["c"], alpha=0.2)
         ax.contour(
             xs, ys, mask.astype(float), levels=[0.5], colors="c", linewidths=1.0, linestyles="--"
         )
