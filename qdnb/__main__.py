@@ -9,6 +9,37 @@ from qdnb.book import runner
 from qdnb.core.config import SCALES
 
 
+def add_checkpoint_flags(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--resume",
+        dest="checkpoints",
+        action="store_const",
+        const="resume",
+        help="long loops save checkpoints and resume from this run's latest (the default)",
+    )
+    group.add_argument(
+        "--fresh",
+        dest="checkpoints",
+        action="store_const",
+        const="fresh",
+        help="ignore (and replace) this run's checkpoints: every loop starts from scratch",
+    )
+    group.add_argument(
+        "--no-checkpoints",
+        dest="checkpoints",
+        action="store_const",
+        const="off",
+        help="save no checkpoints",
+    )
+    parser.set_defaults(checkpoints="resume")
+    parser.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="deterministic GPU kernels (--xla_gpu_deterministic_ops=true): slower",
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m qdnb", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -17,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("notebooks", nargs="+", metavar="NOTEBOOK")
     run.add_argument("--scale", default="tiny", help=f"one of {', '.join(SCALES)} (default: tiny)")
     run.add_argument("--seed", type=int, default=0)
+    add_checkpoint_flags(run)
     book = sub.add_parser("book", help="execute every notebook, then build the HTML book")
     book.add_argument(
         "--scale", default="small", help=f"one of {', '.join(SCALES)} (default: small)"
@@ -25,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     book.add_argument(
         "--force", action="store_true", help="re-execute even when an identical execution exists"
     )
+    add_checkpoint_flags(book)
     args = parser.parse_args(argv)
 
     try:
@@ -33,10 +66,24 @@ def main(argv: list[str] | None = None) -> int:
             print("scales:   ", " ".join(SCALES))
         elif args.command == "run":
             runner.check_notebooks(args.notebooks)
-            for path in runner.run_notebooks(args.notebooks, args.scale, args.seed):
+            executed = runner.run_notebooks(
+                args.notebooks,
+                args.scale,
+                args.seed,
+                checkpoints=args.checkpoints,
+                deterministic=args.deterministic,
+            )
+            for path in executed:
                 print(f"executed: {path}")
         elif args.command == "book":
-            print(f"book: {runner.build_book(args.scale, args.seed, force=args.force)}")
+            index = runner.build_book(
+                args.scale,
+                args.seed,
+                force=args.force,
+                checkpoints=args.checkpoints,
+                deterministic=args.deterministic,
+            )
+            print(f"book: {index}")
     except (ValueError, runner.NotebookFailed, RuntimeError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1 if not isinstance(err, ValueError) else 2

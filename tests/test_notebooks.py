@@ -12,7 +12,8 @@ from qdnb.core import paths
 @pytest.mark.notebook
 @pytest.mark.parametrize("name", runner.notebook_names())
 def test_notebook_runs_at_tiny_scale(name):
-    out = runner.run_notebook(name, "tiny", seed=0, progress=False)
+    # every loop runs (fresh), saving its checkpoints as a reader's run does
+    out = runner.run_notebook(name, "tiny", seed=0, progress=False, checkpoints="fresh")
     assert out.exists() and out.parent == paths.run_dir("tiny", name)
     summary = json.loads((out.parent / "summary.json").read_text())
     assert summary["notebook"] == name and summary["scale"] == "tiny" and summary["seed"] == 0

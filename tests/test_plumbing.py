@@ -69,6 +69,11 @@ def test_kernels_get_their_scales_xla_flags(tmp_path, monkeypatch):
         )
         printed[s] = nbformat.read(out, as_version=4).cells[-1].outputs[0]["text"].strip()
     assert printed == {"tiny": repr(runner.KERNEL_XLA_FLAGS["tiny"]), "small": "None"}
+    out = runner.execute(
+        src, tmp_path / "det" / "flags.ipynb", {"scale": "small"}, "flags", False, "off", True
+    )
+    flags = nbformat.read(out, as_version=4).cells[-1].outputs[0]["text"].strip()
+    assert flags == repr(runner.DETERMINISTIC_FLAG)
 
 
 def test_a_failing_notebook_names_the_cell_and_leaves_the_partial_copy(tmp_path):
@@ -109,6 +114,7 @@ def test_atomic_json_and_artifacts(tmp_path):
 
 
 def test_summary_has_the_required_fields(monkeypatch, tmp_path):
+    monkeypatch.delenv("QDNB_CHECKPOINTS", raising=False)
     monkeypatch.setattr(paths, "RUNS", tmp_path)
     cfg = registry.config("ch2_primer", "tiny")
     path = Run("test_nb", "tiny", 3, cfg).finish({"x": 1})
@@ -125,8 +131,13 @@ def test_summary_has_the_required_fields(monkeypatch, tmp_path):
         "git_sha",
         "wall_time_s",
         "results",
+        "devices",
+        "deterministic_gpu_ops",
+        "checkpoints",
     ]:
         assert key in summary
+    assert summary["devices"]["count"] >= 1 and summary["devices"]["process_count"] == 1
+    assert summary["checkpoints"] == {"mode": "resume", "resumed": []}
     assert set(summary["versions"]) >= {"python", "jax", "jaxlib", "brax", "flax", "optax"}
     assert summary["seed"] == 3 and summary["config"]["batch_size"] == cfg.batch_size
 

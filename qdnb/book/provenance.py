@@ -14,7 +14,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from qdnb.core import paths
+from qdnb.core import checkpoint, paths
 from qdnb.core.config import check_scale, config_dict, config_hash
 from qdnb.core.io import atomic_write_json
 
@@ -39,6 +39,21 @@ def device() -> str:
     return f"{d.platform}: {kind} x{jax.device_count()} ({os.cpu_count()} CPU cores)"
 
 
+def devices() -> dict[str, Any]:
+    """The accelerator a run used: platform, kind, how many devices (all processes'
+    and this process's) and how many processes."""
+    import jax
+
+    d = jax.devices()[0]
+    return {
+        "platform": d.platform,
+        "kind": str(getattr(d, "device_kind", d)),
+        "count": jax.device_count(),
+        "local_count": jax.local_device_count(),
+        "process_count": jax.process_count(),
+    }
+
+
 def git_sha() -> str:
     """The commit the code was run from, with ``-dirty`` when tracked files differ
     (``QDNB_GIT_SHA`` overrides it, for copies of the tree without ``.git``)."""
@@ -56,9 +71,33 @@ def git_sha() -> str:
         return "unknown"
 
 
+CHECKPOINT_MODES = ("resume", "fresh", "off")
+
+
+def checkpoint_mode() -> str:
+    """``QDNB_CHECKPOINTS``: ``resume`` (the default: loops save checkpoints and a run
+    started again resumes from them), ``fresh`` (loops save but never resume) or
+    ``off`` (no checkpoints)."""
+    mode = os.environ.get("QDNB_CHECKPOINTS", "resume")
+    if mode not in CHECKPOINT_MODES:
+        raise ValueError(
+            f"QDNB_CHECKPOINTS must be one of {', '.join(CHECKPOINT_MODES)}, got {mode!r}"
+        )
+    return mode
+
+
+def code_version() -> str:
+    """What a checkpoint must have been written by to be loaded: this package's
+    commit and the versions of its numerical dependencies."""
+    deps = ", ".join(f"{k} {v}" for k, v in versions().items())
+    return f"qdnb {git_sha()} ({deps})"
+
+
 class Run:
     """One execution of a notebook: ``Run(notebook, scale, seed, cfg)`` at the top,
-    ``run.finish(results)`` at the end."""
+    ``run.finish(results)`` at the end.  Creating it activates the checkpoints of
+    the run's long loops (``qdnb.core.checkpoint``) under
+    ``<run dir>/checkpoints/``, as ``QDNB_CHECKPOINTS`` says."""
 
     def __init__(self, notebook: str, scale: str, seed: int, cfg: Any):
         self.notebook = notebook
@@ -67,6 +106,18 @@ class Run:
         self.config = cfg
         self.dir = paths.run_dir(scale, notebook)
         self.started = time.time()
+        self.checkpoints = mode = checkpoint_mode()
+        checkpoint.activate(
+            None
+            if mode == "off"
+            else checkpoint.CheckpointPolicy(
+                self.dir / "checkpoints",
+                self.config_hash,
+                self.seed,
+                code_version(),
+                resume=mode == "resume",
+            )
+        )
 
     @property
     def config_hash(self) -> str:
@@ -82,11 +133,19 @@ class Run:
             "versions": versions(),
             "device": device(),
             "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "devices": devices(),
+            # XLA's GPU scatter-adds and reductions are not deterministic unless this is on
+            "deterministic_gpu_ops": "--xla_gpu_deterministic_ops=true"
+            in os.environ.get("XLA_FLAGS", ""),
+            "checkpoints": {"mode": self.checkpoints, "resumed": checkpoint.resumed()},
             "git_sha": git_sha(),
             "wall_time_s": round(time.time() - self.started, 2),
             "results": results,
         }
 
     def finish(self, results: dict[str, Any]) -> Path:
-        """Write ``summary.json`` for this run and return its path."""
-        return atomic_write_json(self.dir / "summary.json", self.summary(results))
+        """Write ``summary.json`` for this run and return its path; the run's loops
+        are over, so its checkpoints are no longer active."""
+        path = atomic_write_json(self.dir / "summary.json", self.summary(results))
+        checkpoint.activate(None)
+        return path

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from qdnb.book import registry
+from qdnb.book.provenance import CHECKPOINT_MODES
 from qdnb.core import paths
 from qdnb.core.config import SCALES, check_scale
 from qdnb.core.io import atomic_write_bytes, atomic_write_json, load_summary
@@ -71,15 +72,31 @@ def fingerprint(name: str, scale: str, seed: int) -> str:
 KERNEL_XLA_FLAGS = {"tiny": "--xla_backend_optimization_level=0"}
 
 
-def _kernel_path(scale: str) -> str:
+# XLA's GPU kernels are not all deterministic (scatter-adds and reductions use atomics);
+# `--deterministic` makes them so, at a cost in speed.  CPU runs are deterministic anyway.
+DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
+
+
+def _kernel_path(scale: str, deterministic: bool = False) -> str:
     """A ``python3`` kernel spec that runs this very interpreter (one per scale,
-    with that scale's ``KERNEL_XLA_FLAGS``), put first on ``JUPYTER_PATH``, so
-    that a user-level kernel of another Python never runs the notebooks."""
-    kdir = paths.RUNS / ".jupyter" / scale / "kernels" / "python3"
+    with that scale's ``KERNEL_XLA_FLAGS``, and ``DETERMINISTIC_FLAG`` when
+    ``deterministic``), put first on ``JUPYTER_PATH``, so that a user-level kernel
+    of another Python never runs the notebooks."""
+    name = scale + ("-deterministic" if deterministic else "")
+    kdir = paths.RUNS / ".jupyter" / name / "kernels" / "python3"
     env = {
         "PYTHONPATH": os.pathsep.join(filter(None, [str(paths.ROOT), os.environ.get("PYTHONPATH")]))
     }
-    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS"), KERNEL_XLA_FLAGS.get(scale)]))
+    flags = " ".join(
+        filter(
+            None,
+            [
+                os.environ.get("XLA_FLAGS"),
+                KERNEL_XLA_FLAGS.get(scale),
+                DETERMINISTIC_FLAG if deterministic else None,
+            ],
+        )
+    )
     if flags:
         env["XLA_FLAGS"] = flags
     spec = {
@@ -93,21 +110,37 @@ def _kernel_path(scale: str) -> str:
 
 
 def execute(
-    source: Path, output: Path, parameters: dict, label: str, progress: bool = True
+    source: Path,
+    output: Path,
+    parameters: dict,
+    label: str,
+    progress: bool = True,
+    checkpoints: str = "resume",
+    deterministic: bool = False,
 ) -> Path:
     """Run ``source`` with papermill into ``output`` (its kernel the one of
     ``parameters["scale"]``); raise ``NotebookFailed`` naming the notebook and the
     failing cell, leaving the partly executed copy.  With ``progress``, the
     notebook's own progress bars (its loops, their rates and ETAs) stream to this
     terminal as the kernel writes them; the executed copy keeps only their last
-    state (``tidy_streams``)."""
+    state (``tidy_streams``).  ``checkpoints`` is the kernel's ``QDNB_CHECKPOINTS``
+    (``resume``, ``fresh`` or ``off``: see ``provenance.checkpoint_mode``);
+    ``deterministic`` adds ``DETERMINISTIC_FLAG`` to the kernel's ``XLA_FLAGS``."""
     import papermill as pm
 
+    if checkpoints not in CHECKPOINT_MODES:
+        raise ValueError(
+            f"checkpoints must be one of {', '.join(CHECKPOINT_MODES)}, got {checkpoints!r}"
+        )
     output.parent.mkdir(parents=True, exist_ok=True)
-    env_before = os.environ.get("JUPYTER_PATH")
+    env_before = {k: os.environ.get(k) for k in ("JUPYTER_PATH", "QDNB_CHECKPOINTS")}
     os.environ["JUPYTER_PATH"] = os.pathsep.join(
-        filter(None, [_kernel_path(parameters["scale"]), env_before])
+        filter(
+            None,
+            [_kernel_path(parameters["scale"], deterministic), env_before["JUPYTER_PATH"]],
+        )
     )
+    os.environ["QDNB_CHECKPOINTS"] = checkpoints
     if progress:
         print(
             f"── {label} ({parameters['scale']}): executing {source.name}",
@@ -136,10 +169,11 @@ def execute(
             f"partly executed copy left at {output}"
         ) from None
     finally:
-        if env_before is None:
-            os.environ.pop("JUPYTER_PATH", None)
-        else:
-            os.environ["JUPYTER_PATH"] = env_before
+        for k, v in env_before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     return output
 
 
@@ -230,22 +264,32 @@ def leaked_paths(html_dir: Path) -> list[str]:
 
 
 def run_notebook(
-    name: str, scale: str, seed: int = 0, reuse: bool = False, progress: bool = True
+    name: str,
+    scale: str,
+    seed: int = 0,
+    reuse: bool = False,
+    progress: bool = True,
+    checkpoints: str = "resume",
+    deterministic: bool = False,
 ) -> Path:
     """Execute one notebook at ``scale``; with ``reuse``, keep an earlier execution
-    whose fingerprint matches.  Returns the executed copy."""
+    whose fingerprint matches; its long loops resume from their checkpoints unless
+    ``checkpoints`` says otherwise (``execute``).  Returns the executed copy."""
     check_notebooks([name])
     check_scale(scale)
     out = executed_path(name, scale)
     record_path = out.parent / "execution.json"
-    fp = fingerprint(name, scale, seed)
+    fp = fingerprint(name, scale, seed) + ("-deterministic" if deterministic else "")
     if reuse and out.exists() and record_path.exists():
         record = json.loads(record_path.read_text())
         if record.get("fingerprint") == fp and record.get("status") == "ok":
             return out
     record_path.unlink(missing_ok=True)
     start = time.time()
-    execute(registry.chapter(name).notebook, out, {"scale": scale, "seed": seed}, name, progress)
+    parameters = {"scale": scale, "seed": seed}
+    execute(
+        registry.chapter(name).notebook, out, parameters, name, progress, checkpoints, deterministic
+    )
     tidy_streams(out)
     problems = output_problems(out)
     if problems:
@@ -267,11 +311,19 @@ def run_notebook(
 
 
 def run_notebooks(
-    names: list[str], scale: str, seed: int = 0, reuse: bool = False, progress: bool = True
+    names: list[str],
+    scale: str,
+    seed: int = 0,
+    reuse: bool = False,
+    progress: bool = True,
+    checkpoints: str = "resume",
+    deterministic: bool = False,
 ) -> list[Path]:
     check_notebooks(names)
     check_scale(scale)
-    return [run_notebook(n, scale, seed, reuse, progress) for n in names]
+    return [
+        run_notebook(n, scale, seed, reuse, progress, checkpoints, deterministic) for n in names
+    ]
 
 
 def status_table(scale: str) -> str:
@@ -340,12 +392,27 @@ def external_resources(html_dir: Path) -> list[str]:
     return found
 
 
-def build_book(scale: str, seed: int = 0, force: bool = False, progress: bool = True) -> Path:
+def build_book(
+    scale: str,
+    seed: int = 0,
+    force: bool = False,
+    progress: bool = True,
+    checkpoints: str = "resume",
+    deterministic: bool = False,
+) -> Path:
     """Execute every notebook at ``scale`` (reusing matching executions unless
     ``force``), then render ``book/_build/html``.  Returns the index page."""
     check_scale(scale)
     names = notebook_names()
-    executed = run_notebooks(names, scale, seed, reuse=not force, progress=progress)
+    executed = run_notebooks(
+        names,
+        scale,
+        seed,
+        reuse=not force,
+        progress=progress,
+        checkpoints=checkpoints,
+        deterministic=deterministic,
+    )
     chapters = paths.BOOK / "chapters"
     shutil.rmtree(chapters, ignore_errors=True)
     chapters.mkdir(parents=True)

@@ -1,5 +1,6 @@
-"""Long loops as jitted ``lax.scan`` chunks, with a progress bar between chunks;
-independent runs side by side in threads."""
+"""Long loops as jitted ``lax.scan`` chunks, with a progress bar between chunks and
+checkpoints under the active ``CheckpointPolicy``; independent runs side by side in
+threads."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from tqdm import tqdm
+
+from qdnb.core import checkpoint
 
 
 def scan_in_chunks(
@@ -20,6 +24,7 @@ def scan_in_chunks(
     desc: str | None = None,
     progress: bool = True,
     chunk_seconds: list[float] | None = None,
+    on_chunk: Callable[[int], None] | None = None,
 ) -> tuple[Any, Any]:
     """Apply ``carry, out = step(carry)`` ``num_steps`` times.
 
@@ -30,7 +35,14 @@ def scan_in_chunks(
     compiling a second program for the shorter last chunk.  Returns the
     final carry and the per-step outputs stacked along a leading axis.  When
     ``chunk_seconds`` is a list, the wall time of each chunk (the first one
-    includes compilation) is appended to it.
+    includes compilation) is appended to it; ``on_chunk(steps_done)`` is called
+    after each chunk (and its checkpoint).
+
+    Under an active ``checkpoint.CheckpointPolicy`` a loop with a ``desc`` saves its
+    carry and outputs so far (every ``every_chunks`` chunks, every
+    ``every_seconds`` and at the end) and, started again, resumes from its latest
+    checkpoint, its progress bar starting there; the results equal an
+    uninterrupted run's bit for bit.
     """
     if num_steps < 1 or chunk_size < 1:
         raise ValueError(
@@ -58,9 +70,32 @@ def scan_in_chunks(
             c, out = chunk(c, n)
             return c, jax.tree.map(lambda x: x[:n], out)
 
-    outputs = []
-    with tqdm(total=num_steps, desc=desc, disable=not progress, mininterval=1.0) as bar:
-        done = 0
+    saver = None
+    if checkpoint.active() is not None and desc:
+        out_shape = jax.eval_shape(lambda c: step(c)[1], carry)
+        saver = checkpoint.for_loop(
+            desc,
+            {
+                "num_steps": num_steps,
+                "chunk_size": chunk_size,
+                "structure": checkpoint.structure((carry, out_shape)),
+            },
+        )
+    outputs, done = [], 0
+    if saver is not None:
+        template = lambda steps: {
+            "carry": carry,
+            "outputs": jax.tree.map(lambda s: np.zeros((steps,) + s.shape, s.dtype), out_shape),
+        }
+        restored = saver.restore(template)
+        if restored is not None:
+            done, state, _ = restored
+            carry, outputs = state["carry"], [state["outputs"]]
+            checkpoint.log(f"{saver.name!r} resumed at step {done} of {num_steps}")
+    chunks = 0
+    with tqdm(
+        total=num_steps, initial=done, desc=desc, disable=not progress, mininterval=1.0
+    ) as bar:
         while done < num_steps:
             n = min(chunk_size, num_steps - done)
             start = time.perf_counter()
@@ -70,7 +105,14 @@ def scan_in_chunks(
                 chunk_seconds.append(time.perf_counter() - start)
             outputs.append(out)
             done += n
+            chunks += 1
             bar.update(n)
+            if saver is not None and (done == num_steps or saver.due(chunks)):
+                so_far = jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
+                outputs = [so_far]
+                saver.save(done, {"carry": carry, "outputs": so_far})
+            if on_chunk is not None:
+                on_chunk(done)
     return carry, jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
 
 

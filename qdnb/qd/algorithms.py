@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -239,6 +239,7 @@ def run_seeds(
     desc: str | None = None,
     keep_evaluations: bool = True,
     chunk_seconds: list[float] | None = None,
+    on_chunk: Callable[[int], None] | None = None,
 ):
     """Run one algorithm for several seeds at once (``vmap`` over ``keys``).
 
@@ -246,8 +247,8 @@ def run_seeds(
     evaluated descriptor is tracked on a fixed regular grid of ``track_bins``
     cells over the environment's descriptor bounds (see ``ExplorationTrack``),
     with the smallest distance to ``target``; ``keep_evaluations`` keeps the
-    descriptors and fitnesses of every evaluated solution (``chunk_seconds``: see
-    ``scan_in_chunks``).  ``env_steps`` counts
+    descriptors and fitnesses of every evaluated solution (``chunk_seconds``,
+    ``on_chunk`` and checkpoints under ``desc``: see ``scan_in_chunks``).  ``env_steps`` counts
     the environment steps taken in each iteration.  Returns the final
     states, the tracks (``None`` without ``track_bins``) and a history dict whose
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
@@ -285,6 +286,7 @@ def run_seeds(
             desc=desc,
             progress=progress,
             chunk_seconds=chunk_seconds,
+            on_chunk=on_chunk,
         )
         return states, tracks, jax.tree.map(lambda h: jnp.swapaxes(h, 0, 1), history)
 
@@ -302,6 +304,7 @@ def run_seeds(
         desc=desc,
         progress=progress,
         chunk_seconds=chunk_seconds,
+        on_chunk=on_chunk,
     )
     history = jax.tree.map(
         lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history

@@ -21,6 +21,7 @@ circular on a torus), so ``H`` and ``W`` must be multiples of ``2**len(features)
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -33,6 +34,7 @@ import optax
 from flax import linen as nn
 from tqdm import tqdm
 
+from qdnb.core import checkpoint
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.nets.transformer import Block, Cache, make_optimizer, run_blocks
 
@@ -347,9 +349,33 @@ def train(
         return params, opt_state, frame_sum + jnp.sum(episodes, axis=0), loss, drift
 
     frame_sum = jnp.zeros((world.steps + 1, world.height, world.width, model.channels))
-    losses, drifts = [], []
+    losses, drifts, start_step = [], [], 0
+    saver = checkpoint.for_loop(
+        desc if max_seconds is None else None,  # a wall-clock budget is not resumable
+        {
+            "config": dataclasses.asdict(cfg),
+            "world": repr(world),
+            "system": checkpoint.digest(system),
+            "structure": checkpoint.structure((params, opt_state)),
+        },
+    )
+    if saver is not None:
+        restored = saver.restore(
+            lambda done: (params, opt_state, frame_sum, *[np.zeros(done, np.float32)] * 2)
+        )
+        if restored is not None:
+            start_step, (params, opt_state, frame_sum, done_losses, done_drifts), _ = restored
+            losses, drifts = list(jnp.asarray(done_losses)), list(jnp.asarray(done_drifts))
+            checkpoint.log(f"{saver.name!r} resumed after step {start_step} of {cfg.train_steps}")
     start = time.perf_counter()
-    bar = tqdm(range(cfg.train_steps), desc=desc, disable=not progress, mininterval=1.0)
+    bar = tqdm(
+        range(start_step, cfg.train_steps),
+        desc=desc,
+        disable=not progress,
+        mininterval=1.0,
+        initial=start_step,
+        total=cfg.train_steps,
+    )
     for i in bar:
         params, opt_state, frame_sum, loss, drift = one(
             params, opt_state, frame_sum, jax.random.fold_in(k_train, i)
@@ -364,6 +390,9 @@ def train(
             and time.perf_counter() - start > max_seconds
         ):
             break  # float(loss) waits for the step, so the clock counts finished steps
+        if saver is not None and (i + 1 == cfg.train_steps or saver.due(i + 1 - start_step)):
+            state = (params, opt_state, frame_sum, jnp.stack(losses), jnp.stack(drifts))
+            saver.save(i + 1, state)
     bar.close()
     seen = len(losses) * cfg.batch_size
     return TrainResult(

@@ -18,6 +18,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from qdnb.core import checkpoint
 from qdnb.models.qdt.data import Trajectories
 from qdnb.models.qdt.model import QDT, init_params
 from qdnb.nets.transformer import make_optimizer
@@ -92,8 +93,33 @@ def fit(
     step = step or make_train_step(model, optimizer)
     opt_state = optimizer.init(params)
     result = TrainResult(params=params, best_epoch=0, losses=[])
-    best = np.inf
-    bar = tqdm(range(1, epochs + 1), desc=desc, disable=not progress, leave=True)
+    best, start = np.inf, 0
+    saver = checkpoint.for_loop(
+        desc,
+        {
+            "epochs": epochs,
+            "batch_size": batch_size,
+            "eval_every": eval_every,
+            "data": checkpoint.digest(data),
+            "learning_rate": learning_rate,
+            "structure": checkpoint.structure((params, opt_state)),
+        },
+    )
+    if saver is not None:  # the state after some epochs: resume from there
+        restored = saver.restore(lambda _: (params, opt_state, k_train, params))
+        if restored is not None:
+            start, (params, opt_state, k_train, result.params), extra = restored
+            best, result.best_epoch = extra["best"], extra["best_epoch"]
+            result.losses, result.evaluations = extra["losses"], extra["evaluations"]
+            checkpoint.log(f"{saver.name!r} resumed after epoch {start} of {epochs}")
+    bar = tqdm(
+        range(start + 1, epochs + 1),
+        desc=desc,
+        disable=not progress,
+        leave=True,
+        initial=start,
+        total=epochs,
+    )
     for epoch in bar:
         k_perm, k_drop, k_train = jax.random.split(k_train, 3)
         order = np.asarray(jax.random.permutation(k_perm, data.size))
@@ -112,4 +138,12 @@ def fit(
             if scores["avg_distance"] < best:
                 best, result.best_epoch, result.params = scores["avg_distance"], epoch, params
             bar.set_postfix(loss=f"{result.losses[-1]:.4f}", dist=f"{scores['avg_distance']:.3g}")
+        if saver is not None and (epoch == epochs or saver.due(epoch - start)):
+            extra = {
+                "best": float(best),
+                "best_epoch": result.best_epoch,
+                "losses": result.losses,
+                "evaluations": result.evaluations,
+            }
+            saver.save(epoch, (params, opt_state, k_train, result.params), extra)
     return result
