@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from qdnb.book import runner
+from qdnb.book import publish, runner
 from qdnb.core.config import SCALES
 
 
@@ -58,6 +58,13 @@ def main(argv: list[str] | None = None) -> int:
         "--force", action="store_true", help="re-execute even when an identical execution exists"
     )
     add_checkpoint_flags(book)
+    pub = sub.add_parser("publish", help="pack a finished run into one archive with a manifest")
+    pub.add_argument("scale")
+    pub.add_argument("notebook")
+    pub.add_argument("--out", default=None, help="the archive's path (default: data/published/...)")
+    imp = sub.add_parser("import", help="check a published run's archive and unpack it")
+    imp.add_argument("archive")
+    imp.add_argument("--replace", action="store_true", help="replace a run already here")
     args = parser.parse_args(argv)
 
     try:
@@ -84,6 +91,10 @@ def main(argv: list[str] | None = None) -> int:
                 deterministic=args.deterministic,
             )
             print(f"book: {index}")
+        elif args.command == "publish":
+            print(f"published: {publish.publish(args.scale, args.notebook, args.out)}")
+        elif args.command == "import":
+            print(f"imported: {publish.import_archive(args.archive, args.replace)}")
     except (ValueError, runner.NotebookFailed, RuntimeError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1 if not isinstance(err, ValueError) else 2

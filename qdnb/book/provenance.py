@@ -18,7 +18,7 @@ from qdnb.core import checkpoint, paths
 from qdnb.core.config import check_scale, config_dict, config_hash
 from qdnb.core.io import atomic_write_json
 
-PACKAGES = ("jax", "jaxlib", "brax", "flax", "optax")
+PACKAGES = ("jax", "jaxlib", "brax", "flax", "optax", "orbax-checkpoint")
 
 
 def versions() -> dict[str, str]:

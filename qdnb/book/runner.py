@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from qdnb.book import registry
+from qdnb.book import publish, registry
 from qdnb.book.provenance import CHECKPOINT_MODES
 from qdnb.core import paths
 from qdnb.core.config import SCALES, check_scale
@@ -285,6 +285,7 @@ def run_notebook(
         if record.get("fingerprint") == fp and record.get("status") == "ok":
             return out
     record_path.unlink(missing_ok=True)
+    (out.parent / publish.IMPORTED).unlink(missing_ok=True)  # computed here from now on
     start = time.time()
     parameters = {"scale": scale, "seed": seed}
     execute(
@@ -344,8 +345,14 @@ def status_table(scale: str) -> str:
             lines.append(f"| {title} | [{name}](chapters/{name}) | no summary written | — | — |")
         else:
             headline = summary.get("results", {}).get("headline", "")
+            record = publish.imported(scale, name)
+            where = (
+                f"imported: ran on {record.get('host')}, published {record.get('published_at')}"
+                if record
+                else "ran"
+            )
             lines.append(
-                f"| {title} | [{name}](chapters/{name}) | ran (seed {summary['seed']}, "
+                f"| {title} | [{name}](chapters/{name}) | {where} (seed {summary['seed']}, "
                 f"git {summary['git_sha'][:12]}) | {summary['wall_time_s']:.0f} s | {headline} |"
             )
     return "\n".join(lines) + "\n"
@@ -392,6 +399,32 @@ def external_resources(html_dir: Path) -> list[str]:
     return found
 
 
+def has_local_run(name: str, scale: str) -> bool:
+    """Whether this machine holds a finished run of ``name`` at ``scale`` (computed
+    here, or imported before)."""
+    record = executed_path(name, scale).parent / "execution.json"
+    return (
+        executed_path(name, scale).exists()
+        and record.exists()
+        and json.loads(record.read_text()).get("status") == "ok"
+    )
+
+
+def copy_page(name: str, scale: str, dest: Path) -> None:
+    """The executed notebook as the book's page; an imported run's page opens with
+    ``publish.banner`` after its title."""
+    import nbformat
+
+    source = executed_path(name, scale)
+    record = publish.imported(scale, name)
+    if record is None:
+        shutil.copy(source, dest)
+        return
+    nb = nbformat.read(source, as_version=4)
+    nb.cells.insert(1, nbformat.v4.new_markdown_cell(publish.banner(record)))
+    atomic_write_bytes(dest, nbformat.writes(nb).encode())
+
+
 def build_book(
     scale: str,
     seed: int = 0,
@@ -404,8 +437,13 @@ def build_book(
     ``force``), then render ``book/_build/html``.  Returns the index page."""
     check_scale(scale)
     names = notebook_names()
-    executed = run_notebooks(
-        names,
+    for name in names:  # a published run stands in for a run this machine has not made
+        archive = publish.archive_path(scale, name)
+        if not has_local_run(name, scale) and archive.exists():
+            publish.import_archive(archive, replace=True)
+            print(f"── {name} ({scale}): imported {archive.name}", file=sys.stderr)
+    run_notebooks(
+        [n for n in names if publish.imported(scale, n) is None],
         scale,
         seed,
         reuse=not force,
@@ -416,8 +454,8 @@ def build_book(
     chapters = paths.BOOK / "chapters"
     shutil.rmtree(chapters, ignore_errors=True)
     chapters.mkdir(parents=True)
-    for name, path in zip(names, executed):
-        shutil.copy(path, chapters / f"{name}.ipynb")
+    for name in names:
+        copy_page(name, scale, chapters / f"{name}.ipynb")
     (paths.BOOK / "_status.md").write_text(status_table(scale))
     (paths.BOOK / "_toc.yml").write_text(registry.toc())
     copy_mathjax(paths.BOOK / "_extra")

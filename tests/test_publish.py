@@ -1,0 +1,155 @@
+"""Published runs: publish then import gives back the same run, without parameter
+files or checkpoints; a tampered, incomplete or foreign archive is refused with a
+clear error and nothing half-unpacked; an imported run's page carries its banner."""
+
+import io
+import json
+import tarfile
+
+import nbformat
+import pytest
+
+from qdnb.book import publish, runner
+from qdnb.core import paths
+
+
+@pytest.fixture
+def runs(tmp_path, monkeypatch):
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
+    return tmp_path / "runs"
+
+
+def fake_run(scale="tiny", name="ch2_primer"):
+    """A finished run as the runner leaves it, with a parameter file and checkpoints."""
+    d = paths.run_dir(scale, name)
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_markdown_cell("# The title"), nbformat.v4.new_code_cell("1 + 1")]
+    nbformat.write(nb, d / f"{name}.ipynb")
+    summary = {
+        "notebook": name,
+        "scale": scale,
+        "seed": 0,
+        "git_sha": "0123456789abcdef",
+        "device": "gpu: H100 x1",
+        "devices": {"platform": "gpu", "kind": "H100", "count": 1},
+        "xla_flags": "",
+        "wall_time_s": 141.0,
+        "config_hash": "abc",
+        "results": {"headline": "it ran"},
+    }
+    (d / "summary.json").write_text(json.dumps(summary))
+    (d / "execution.json").write_text(json.dumps({"status": "ok", "fingerprint": "f"}))
+    (d / "repertoire_ME.npz").write_bytes(b"parameters")
+    (d / "checkpoints" / "GA").mkdir(parents=True)
+    (d / "checkpoints" / "GA" / "state").write_bytes(b"state")
+    return d
+
+
+def rewrite(archive, change):
+    """The archive with its members passed through ``change(name, data) -> [(name, data)]``."""
+    with tarfile.open(archive) as tar:
+        members = [(m.name, tar.extractfile(m).read()) for m in tar.getmembers()]
+    with tarfile.open(archive, "w:gz") as tar:
+        for name, data in members:
+            for new_name, new_data in change(name, data):
+                info = tarfile.TarInfo(new_name)
+                info.size = len(new_data)
+                tar.addfile(info, io.BytesIO(new_data))
+
+
+def test_publish_then_import_gives_back_the_run(runs):
+    run_dir = fake_run()
+    archive = publish.publish("tiny", "ch2_primer")
+    assert archive == publish.archive_path("tiny", "ch2_primer")
+    with tarfile.open(archive) as tar:
+        names = sorted(m.name for m in tar.getmembers())
+    assert names == ["ch2_primer.ipynb", "execution.json", "manifest.json", "summary.json"]
+    originals = {n: (run_dir / n).read_bytes() for n in names if n != "manifest.json"}
+    publish.shutil.rmtree(run_dir)
+    target = publish.import_archive(archive)
+    assert target == run_dir
+    for name, data in originals.items():
+        assert (target / name).read_bytes() == data
+    record = publish.imported("tiny", "ch2_primer")
+    assert record["run"]["git_sha"] == "0123456789abcdef" and record["archive"] == archive.name
+    text = publish.banner(record)
+    assert "imported" in text and "not computed by this build" in text and "H100" in text
+
+
+def test_an_existing_run_is_kept_unless_replaced(runs):
+    fake_run()
+    archive = publish.publish("tiny", "ch2_primer")
+    with pytest.raises(publish.ArchiveError, match="already exists"):
+        publish.import_archive(archive)
+    assert publish.imported("tiny", "ch2_primer") is None
+    publish.import_archive(archive, replace=True)
+    assert publish.imported("tiny", "ch2_primer") is not None
+    assert not (runs / "tiny" / "ch2_primer" / "repertoire_ME.npz").exists()
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (lambda n, d: [(n, d + b" ")] if n == "summary.json" else [(n, d)],
+         "altered: summary.json"),
+        (lambda n, d: [] if n == "execution.json" else [(n, d)], "missing: execution.json"),
+        (lambda n, d: [(n, d), ("extra.txt", b"x")] if n == "summary.json" else [(n, d)],
+         "not in the manifest: extra.txt"),
+        (lambda n, d: [("../escape.json", d)] if n == "summary.json" else [(n, d)],
+         "not a plain file inside the run"),
+        (lambda n, d: [] if n == "manifest.json" else [(n, d)], "no manifest.json"),
+    ],
+)  # fmt: skip
+def test_a_tampered_or_incomplete_archive_is_refused_and_nothing_unpacked(runs, change, message):
+    fake_run()
+    archive = publish.publish("tiny", "ch2_primer")
+    publish.shutil.rmtree(runs / "tiny" / "ch2_primer")
+    rewrite(archive, change)
+    with pytest.raises(publish.ArchiveError, match=message):
+        publish.import_archive(archive)
+    assert not any((runs / "tiny").iterdir())  # not even a staging directory
+
+
+def test_a_truncated_archive_is_refused(runs):
+    fake_run()
+    archive = publish.publish("tiny", "ch2_primer")
+    archive.write_bytes(archive.read_bytes()[: archive.stat().st_size // 2])
+    with pytest.raises(publish.ArchiveError, match="incomplete|not a readable"):
+        publish.import_archive(archive)
+
+
+def test_nothing_to_publish_says_so(runs):
+    with pytest.raises(publish.ArchiveError, match="no finished run"):
+        publish.publish("tiny", "ch2_primer")
+    with pytest.raises(ValueError, match="valid chapters"):
+        publish.publish("tiny", "nope")
+
+
+def test_an_imported_page_opens_with_its_banner_and_the_status_says_imported(runs, tmp_path):
+    fake_run()
+    publish.import_archive(publish.publish("tiny", "ch2_primer"), replace=True)
+    page = tmp_path / "page.ipynb"
+    runner.copy_page("ch2_primer", "tiny", page)
+    cells = nbformat.read(page, as_version=4).cells
+    assert cells[0].source == "# The title" and "A published run, imported" in cells[1].source
+    assert "imported: ran on" in runner.status_table("tiny")
+    # a local run is copied as it is
+    (runs / "tiny" / "ch2_primer" / publish.IMPORTED).unlink()
+    runner.copy_page("ch2_primer", "tiny", page)
+    assert len(nbformat.read(page, as_version=4).cells) == 2
+
+
+def test_the_cli_refuses_a_bad_archive_with_a_clear_error(tmp_path):
+    import subprocess
+    import sys
+
+    bad = tmp_path / "run.tar.gz"
+    bad.write_bytes(b"not an archive")
+    proc = subprocess.run(
+        [sys.executable, "-m", "qdnb", "import", str(bad)],
+        cwd=paths.ROOT,
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2 and "error: run.tar.gz: not a readable archive" in proc.stderr
