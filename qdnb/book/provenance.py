@@ -14,7 +14,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from qdnb.core import checkpoint, paths
+from qdnb.core import checkpoint, paths, sharding
 from qdnb.core.config import check_scale, config_dict, config_hash
 from qdnb.core.io import atomic_write_json
 
@@ -95,11 +95,14 @@ def code_version() -> str:
 
 class Run:
     """One execution of a notebook: ``Run(notebook, scale, seed, cfg)`` at the top,
-    ``run.finish(results)`` at the end.  Creating it activates the checkpoints of
-    the run's long loops (``qdnb.core.checkpoint``) under
-    ``<run dir>/checkpoints/``, as ``QDNB_CHECKPOINTS`` says."""
+    ``run.finish(results)`` at the end (on a cluster, process 0 writes
+    ``summary.json``, the others ``summary.process-<i>.json``).  Creating it joins
+    the cluster if there is one and activates the checkpoints of the run's long
+    loops (``qdnb.core.checkpoint``) under ``<run dir>/checkpoints/``, as
+    ``QDNB_CHECKPOINTS`` says."""
 
     def __init__(self, notebook: str, scale: str, seed: int, cfg: Any):
+        sharding.initialize_distributed()  # one of several processes: join them first
         self.notebook = notebook
         self.scale = check_scale(scale)
         self.seed = int(seed)
@@ -146,6 +149,11 @@ class Run:
     def finish(self, results: dict[str, Any]) -> Path:
         """Write ``summary.json`` for this run and return its path; the run's loops
         are over, so its checkpoints are no longer active."""
-        path = atomic_write_json(self.dir / "summary.json", self.summary(results))
+        name = "summary.json"
+        if not sharding.is_main_process():  # process 0 writes the run's summary
+            import jax
+
+            name = f"summary.process-{jax.process_index()}.json"
+        path = atomic_write_json(self.dir / name, self.summary(results))
         checkpoint.activate(None)
         return path

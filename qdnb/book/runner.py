@@ -47,8 +47,18 @@ def check_notebooks(names: list[str]) -> list[str]:
     return names
 
 
+def process_id() -> int:
+    """This process's rank when launched as one of several (SLURM's ``SLURM_PROCID``
+    or ``JAX_PROCESS_ID``), else 0."""
+    return int(os.environ.get("JAX_PROCESS_ID") or os.environ.get("SLURM_PROCID") or 0)
+
+
 def executed_path(name: str, scale: str) -> Path:
-    return paths.run_dir(scale, name) / f"{name}.ipynb"
+    """Where the executed notebook goes: the run directory, or on a cluster, for
+    processes other than 0, its ``process-<i>/`` (each process keeps its own log)."""
+    rank = process_id()
+    where = paths.run_dir(scale, name)
+    return (where if rank == 0 else where / f"process-{rank}") / f"{name}.ipynb"
 
 
 def fingerprint(name: str, scale: str, seed: int) -> str:
@@ -451,6 +461,8 @@ def build_book(
         checkpoints=checkpoints,
         deterministic=deterministic,
     )
+    if process_id() != 0:  # on a cluster, process 0 renders the book
+        return executed_path(names[0], scale)
     chapters = paths.BOOK / "chapters"
     shutil.rmtree(chapters, ignore_errors=True)
     chapters.mkdir(parents=True)

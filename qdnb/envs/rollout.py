@@ -9,6 +9,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from qdnb.core.evaluation import Evaluation
+from qdnb.core.sharding import shard_batch
 from qdnb.envs.base import Env, EnvState
 
 PolicyApply = Callable[[Any, jax.Array], jax.Array]
@@ -46,6 +47,8 @@ def evaluate_policies(
     )
     sigma = jnp.broadcast_to(jnp.asarray(exploration_noise, jnp.float32), (batch,))
     noise_keys = jax.random.split(k_noise, batch)
+    # the population over every local device (nothing changes on one device)
+    params, states, sigma, noise_keys = shard_batch((params, states, sigma, noise_keys))
 
     def one_env(params, sigma, noise_key, carry):
         state, tally = carry

@@ -35,6 +35,7 @@ from flax import linen as nn
 from tqdm import tqdm
 
 from qdnb.core import checkpoint
+from qdnb.core.sharding import shard_batch
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.nets.transformer import Block, Cache, make_optimizer, run_blocks
 
@@ -342,6 +343,7 @@ def train(
     def one(params, opt_state, frame_sum, key):
         k_sim, k_drop = jax.random.split(key)
         episodes = fl.frames(fl.simulate_system(system, k_sim, world, cfg.batch_size))
+        episodes = shard_batch(episodes)  # data-parallel over every local device
         params, opt_state, loss = step(
             params, opt_state, episodes, k_drop if cfg.dropout > 0 else None
         )

@@ -19,6 +19,7 @@ import optax
 from tqdm import tqdm
 
 from qdnb.core import checkpoint
+from qdnb.core.sharding import shard_batch
 from qdnb.models.qdt.data import Trajectories
 from qdnb.models.qdt.model import QDT, init_params
 from qdnb.nets.transformer import make_optimizer
@@ -38,13 +39,23 @@ def loss_fn(
     return jnp.sum(err * valid) / jnp.maximum(jnp.sum(valid), 1.0)
 
 
+def loss_and_grads(
+    model: QDT, params: Any, batch: Trajectories, key: jax.Array | None = None
+) -> tuple[jax.Array, Any]:
+    """``loss_fn`` and its gradient, the minibatch split over every local device
+    (data parallel: each device takes its share of the trajectories, XLA sums the
+    gradients across devices; one device computes as before)."""
+    batch = shard_batch(batch)
+    return jax.value_and_grad(lambda p: loss_fn(model, p, batch, key))(params)
+
+
 def make_train_step(model: QDT, optimizer: optax.GradientTransformation):
     """One jitted gradient step on a minibatch: ``(params, opt_state, batch, key)
     -> (params, opt_state, loss)``."""
 
     @jax.jit
     def step(params, opt_state, batch, key):
-        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, batch, key))(params)
+        loss, grads = loss_and_grads(model, params, batch, key)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
