@@ -72,6 +72,7 @@ def test_an_interrupted_loop_resumes_bit_for_bit(tmp_path, steps, chunk, capsys)
     assert f"{2 * chunk}/{steps}" in err  # the progress bar starts where the run stopped
     kept = sorted(p.name for p in next(tmp_path.iterdir()).iterdir() if p.name.isdigit())
     assert len(kept) == 2  # the last two
+    assert checkpoint.cost()["saves"] >= 1 and checkpoint.cost()["seconds"] > 0
 
 
 def test_a_finished_loop_is_restored_without_running(tmp_path):
@@ -284,6 +285,14 @@ def test_a_run_activates_its_checkpoints_as_qdnb_checkpoints_says(monkeypatch, t
         assert active.directory == tmp_path / "tiny" / "nb" / "checkpoints"
         run.finish({})
         assert checkpoint.active() is None
+    monkeypatch.setenv("QDNB_CHECKPOINT_EVERY_CHUNKS", "7")
+    monkeypatch.setenv("QDNB_CHECKPOINT_EVERY_SECONDS", "30")
+    Run("nb", "tiny", 0, cfg)
+    assert (checkpoint.active().every_chunks, checkpoint.active().every_seconds) == (7, 30.0)
+    monkeypatch.setenv("QDNB_CHECKPOINT_EVERY_CHUNKS", "often")
+    with pytest.raises(ValueError, match="QDNB_CHECKPOINT_EVERY_CHUNKS must be a number"):
+        Run("nb", "tiny", 0, cfg)
+    monkeypatch.delenv("QDNB_CHECKPOINT_EVERY_CHUNKS")
     monkeypatch.setenv("QDNB_CHECKPOINTS", "off")
     Run("nb", "tiny", 0, cfg)
     assert checkpoint.active() is None

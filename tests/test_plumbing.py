@@ -137,7 +137,7 @@ def test_summary_has_the_required_fields(monkeypatch, tmp_path):
     ]:
         assert key in summary
     assert summary["devices"]["count"] >= 1 and summary["devices"]["process_count"] == 1
-    assert summary["checkpoints"] == {"mode": "resume", "resumed": []}
+    assert summary["checkpoints"] == {"mode": "resume", "resumed": [], "saves": 0, "seconds": 0.0}
     assert set(summary["versions"]) >= {"python", "jax", "jaxlib", "brax", "flax", "optax"}
     assert summary["seed"] == 3 and summary["config"]["batch_size"] == cfg.batch_size
 

@@ -86,6 +86,22 @@ def checkpoint_mode() -> str:
     return mode
 
 
+def checkpoint_intervals() -> dict[str, float]:
+    """``QDNB_CHECKPOINT_EVERY_CHUNKS`` and ``QDNB_CHECKPOINT_EVERY_SECONDS``, where set:
+    how often long loops save (defaults: ``CheckpointPolicy``'s)."""
+    out: dict[str, float] = {}
+    for name, key, kind in (
+        ("QDNB_CHECKPOINT_EVERY_CHUNKS", "every_chunks", int),
+        ("QDNB_CHECKPOINT_EVERY_SECONDS", "every_seconds", float),
+    ):
+        if os.environ.get(name):
+            try:
+                out[key] = kind(os.environ[name])
+            except ValueError:
+                raise ValueError(f"{name} must be a number, got {os.environ[name]!r}") from None
+    return out
+
+
 def code_version() -> str:
     """What a checkpoint must have been written by to be loaded: this package's
     commit and the versions of its numerical dependencies."""
@@ -119,6 +135,7 @@ class Run:
                 self.seed,
                 code_version(),
                 resume=mode == "resume",
+                **checkpoint_intervals(),
             )
         )
 
@@ -140,7 +157,11 @@ class Run:
             # XLA's GPU scatter-adds and reductions are not deterministic unless this is on
             "deterministic_gpu_ops": "--xla_gpu_deterministic_ops=true"
             in os.environ.get("XLA_FLAGS", ""),
-            "checkpoints": {"mode": self.checkpoints, "resumed": checkpoint.resumed()},
+            "checkpoints": {
+                "mode": self.checkpoints,
+                "resumed": checkpoint.resumed(),
+                **checkpoint.cost(),
+            },
             "git_sha": git_sha(),
             "wall_time_s": round(time.time() - self.started, 2),
             "results": results,

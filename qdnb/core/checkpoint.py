@@ -59,6 +59,7 @@ _lock = threading.Lock()
 _active: CheckpointPolicy | None = None
 _seen: dict[str, int] = {}  # loop name -> how many loops of that name started
 _resumed: list[dict[str, Any]] = []  # the loops of this run restored from a checkpoint
+_cost = {"saves": 0, "seconds": 0.0}  # what saving has cost this run
 
 
 def activate(policy: CheckpointPolicy | None) -> None:
@@ -69,10 +70,17 @@ def activate(policy: CheckpointPolicy | None) -> None:
         _active = policy
         _seen.clear()
         _resumed.clear()
+        _cost.update(saves=0, seconds=0.0)
 
 
 def active() -> CheckpointPolicy | None:
     return _active
+
+
+def cost() -> dict[str, float]:
+    """How many checkpoints this run saved and the seconds it spent saving them."""
+    with _lock:
+        return {"saves": _cost["saves"], "seconds": round(_cost["seconds"], 2)}
 
 
 def resumed() -> list[dict[str, Any]]:
@@ -208,6 +216,7 @@ class LoopCheckpoints:
         """Save ``state`` (a pytree of arrays) after ``step`` steps, with ``extra``
         (Python values and numpy arrays: records kept on the host) beside it."""
         ocp = self._ocp
+        start = time.perf_counter()
         meta = {**self.meta, "step": step, "extra": to_json(extra)}
         self.manager.save(
             step,
@@ -218,6 +227,9 @@ class LoopCheckpoints:
         )
         self.manager.wait_until_finished()
         self.last_save = time.monotonic()
+        with _lock:
+            _cost["saves"] += 1
+            _cost["seconds"] += time.perf_counter() - start
 
 
 def to_json(value: Any) -> Any:
