@@ -29,7 +29,8 @@ START = (jax.random.PRNGKey(3), jnp.zeros(4), jnp.int32(0))
 
 
 def policy(tmp_path, **kw):
-    args = dict(directory=tmp_path, config_hash="abc123", seed=0, version="v1", every_chunks=1)
+    args = dict(directory=tmp_path, config_hash="abc123", seed=0, version="v1")
+    args |= dict(every_chunks=1, min_seconds=0)  # save after every chunk, however short
     return checkpoint.CheckpointPolicy(**(args | kw))
 
 
@@ -147,11 +148,14 @@ def test_fresh_removes_this_runs_checkpoints_and_names_reused_in_order_stay_apar
     assert not np.array_equal(np.asarray(a[0][1]), np.asarray(b[0][1]))
 
 
-def test_without_a_policy_or_a_name_nothing_is_saved(tmp_path):
+def test_without_a_policy_or_a_name_nothing_is_saved_nor_for_a_short_loop(tmp_path):
     scan_in_chunks(walk, START, 4, 2, "walk", progress=False)
     checkpoint.activate(policy(tmp_path))
     scan_in_chunks(walk, START, 4, 2, None, progress=False)
     assert not tmp_path.exists() or not any(tmp_path.iterdir())
+    checkpoint.activate(policy(tmp_path, min_seconds=60))  # a loop of a second is not saved
+    scan_in_chunks(walk, START, 4, 2, "walk", progress=False)
+    assert checkpoint.cost()["saves"] == 0
 
 
 def test_bad_policies_raise():

@@ -5,7 +5,8 @@ every notebook): from then on every loop of ``scan_in_chunks`` saves its whole s
 (the carry: algorithm state, optimiser states, PRNG keys, buffers, archives,
 counters; and the outputs so far) every ``every_chunks`` chunks, every
 ``every_seconds`` seconds and at its end, with ``orbax-checkpoint``, keeping the last
-``keep``.  A loop started again with the same policy restores the latest
+``keep``; a loop that has run less than ``min_seconds`` is not saved (recomputing it
+is cheaper).  A loop started again with the same policy restores the latest
 checkpoint and runs only what is left: its results equal an uninterrupted run's bit
 for bit, since the same compiled chunks run on the same state.
 
@@ -46,6 +47,7 @@ class CheckpointPolicy:
     every_seconds: float = 600.0
     keep: int = 2
     resume: bool = True
+    min_seconds: float = 20.0  # loops shorter than this are not checkpointed
 
     def __post_init__(self):
         if self.every_chunks < 1 or self.every_seconds <= 0 or self.keep < 1:
@@ -157,7 +159,7 @@ class LoopCheckpoints:
                 max_to_keep=policy.keep, enable_async_checkpointing=False, create=True
             ),
         )
-        self.last_save = time.monotonic()
+        self.started = self.last_save = time.monotonic()
 
     def _mention_foreign(self, stem: str) -> None:
         parent = Path(self.policy.directory)
@@ -205,10 +207,15 @@ class LoopCheckpoints:
             log(f"{self.name!r}: step {step} {why}; not loaded, removed")
         return None
 
-    def due(self, chunks_done: int) -> bool:
-        """Whether a save is due after ``chunks_done`` chunks of this run of the loop."""
+    def due(self, chunks_done: int, last: bool = False) -> bool:
+        """Whether a save is due after ``chunks_done`` chunks of this run of the loop
+        (``last``: the loop's end).  A loop that has run less than ``min_seconds``
+        is not saved at all: recomputing it costs less than saving it."""
+        if time.monotonic() - self.started < self.policy.min_seconds:
+            return False
         return (
-            chunks_done % self.policy.every_chunks == 0
+            last
+            or chunks_done % self.policy.every_chunks == 0
             or time.monotonic() - self.last_save >= self.policy.every_seconds
         )
 

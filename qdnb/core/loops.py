@@ -107,7 +107,7 @@ def scan_in_chunks(
             done += n
             chunks += 1
             bar.update(n)
-            if saver is not None and (done == num_steps or saver.due(chunks)):
+            if saver is not None and saver.due(chunks, last=done == num_steps):
                 so_far = jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
                 outputs = [so_far]
                 saver.save(done, {"carry": carry, "outputs": so_far})

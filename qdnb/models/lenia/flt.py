@@ -392,7 +392,7 @@ def train(
             and time.perf_counter() - start > max_seconds
         ):
             break  # float(loss) waits for the step, so the clock counts finished steps
-        if saver is not None and (i + 1 == cfg.train_steps or saver.due(i + 1 - start_step)):
+        if saver is not None and saver.due(i + 1 - start_step, last=i + 1 == cfg.train_steps):
             state = (params, opt_state, frame_sum, jnp.stack(losses), jnp.stack(drifts))
             saver.save(i + 1, state)
     bar.close()

@@ -149,7 +149,7 @@ def fit(
             if scores["avg_distance"] < best:
                 best, result.best_epoch, result.params = scores["avg_distance"], epoch, params
             bar.set_postfix(loss=f"{result.losses[-1]:.4f}", dist=f"{scores['avg_distance']:.3g}")
-        if saver is not None and (epoch == epochs or saver.due(epoch - start)):
+        if saver is not None and saver.due(epoch - start, last=epoch == epochs):
             extra = {
                 "best": float(best),
                 "best_epoch": result.best_epoch,
