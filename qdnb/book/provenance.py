@@ -72,6 +72,9 @@ def git_sha() -> str:
 
 
 CHECKPOINT_MODES = ("resume", "fresh", "off")
+# XLA's GPU kernels are not all deterministic (scatter-adds and reductions use atomics);
+# `--deterministic` makes them so, at a cost in speed.  CPU runs are deterministic anyway.
+DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
 def checkpoint_mode() -> str:
@@ -154,9 +157,7 @@ class Run:
             "device": device(),
             "xla_flags": os.environ.get("XLA_FLAGS", ""),
             "devices": devices(),
-            # XLA's GPU scatter-adds and reductions are not deterministic unless this is on
-            "deterministic_gpu_ops": "--xla_gpu_deterministic_ops=true"
-            in os.environ.get("XLA_FLAGS", ""),
+            "deterministic_gpu_ops": DETERMINISTIC_FLAG in os.environ.get("XLA_FLAGS", ""),
             "checkpoints": {
                 "mode": self.checkpoints,
                 "resumed": checkpoint.resumed(),

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from qdnb.book import publish, registry
-from qdnb.book.provenance import CHECKPOINT_MODES
+from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
 from qdnb.core import paths
 from qdnb.core.config import SCALES, check_scale
 from qdnb.core.io import atomic_write_bytes, atomic_write_json, load_summary
@@ -80,11 +80,6 @@ def fingerprint(name: str, scale: str, seed: int) -> str:
 # faster (3.3 s against 8.2 s here) for code that runs slower, which `tiny` barely runs.
 # `small` and `paper` keep XLA's defaults.  The flags a run used are in its summary.json.
 KERNEL_XLA_FLAGS = {"tiny": "--xla_backend_optimization_level=0"}
-
-
-# XLA's GPU kernels are not all deterministic (scatter-adds and reductions use atomics);
-# `--deterministic` makes them so, at a cost in speed.  CPU runs are deterministic anyway.
-DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
 def _kernel_path(scale: str, deterministic: bool = False) -> str:
@@ -290,10 +285,8 @@ def run_notebook(
     out = executed_path(name, scale)
     record_path = out.parent / "execution.json"
     fp = fingerprint(name, scale, seed) + ("-deterministic" if deterministic else "")
-    if reuse and out.exists() and record_path.exists():
-        record = json.loads(record_path.read_text())
-        if record.get("fingerprint") == fp and record.get("status") == "ok":
-            return out
+    if reuse and (finished_record(name, scale) or {}).get("fingerprint") == fp:
+        return out
     record_path.unlink(missing_ok=True)
     (out.parent / publish.IMPORTED).unlink(missing_ok=True)  # computed here from now on
     start = time.time()
@@ -409,15 +402,15 @@ def external_resources(html_dir: Path) -> list[str]:
     return found
 
 
-def has_local_run(name: str, scale: str) -> bool:
-    """Whether this machine holds a finished run of ``name`` at ``scale`` (computed
-    here, or imported before)."""
-    record = executed_path(name, scale).parent / "execution.json"
-    return (
-        executed_path(name, scale).exists()
-        and record.exists()
-        and json.loads(record.read_text()).get("status") == "ok"
-    )
+def finished_record(name: str, scale: str) -> dict | None:
+    """The execution record of the finished run of ``name`` at ``scale`` that this
+    machine holds (computed here, or imported before), or ``None``."""
+    out = executed_path(name, scale)
+    record_path = out.parent / "execution.json"
+    if not (out.exists() and record_path.exists()):
+        return None
+    record = json.loads(record_path.read_text())
+    return record if record.get("status") == "ok" else None
 
 
 def copy_page(name: str, scale: str, dest: Path) -> None:
@@ -449,7 +442,7 @@ def build_book(
     names = notebook_names()
     for name in names:  # a published run stands in for a run this machine has not made
         archive = publish.archive_path(scale, name)
-        if not has_local_run(name, scale) and archive.exists():
+        if finished_record(name, scale) is None and archive.exists():
             publish.import_archive(archive, replace=True)
             print(f"── {name} ({scale}): imported {archive.name}", file=sys.stderr)
     run_notebooks(

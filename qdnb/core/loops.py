@@ -48,6 +48,13 @@ def scan_in_chunks(
         raise ValueError(
             f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}"
         )
+    shape: list[Any] = []  # the per-step outputs' shapes, traced once if needed
+
+    def output_shape() -> Any:
+        if not shape:
+            shape.append(jax.eval_shape(lambda c: step(c)[1], carry))
+        return shape[0]
+
     if num_steps % chunk_size == 0:
 
         @jax.jit
@@ -56,7 +63,7 @@ def scan_in_chunks(
 
         run = lambda n, c: chunk(c)
     else:
-        out_shape = jax.eval_shape(lambda c: step(c)[1], carry)
+        out_shape = output_shape()
         skip = lambda c: (c, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape))
 
         def masked(c, n):
@@ -72,7 +79,7 @@ def scan_in_chunks(
 
     saver = None
     if checkpoint.active() is not None and desc:
-        out_shape = jax.eval_shape(lambda c: step(c)[1], carry)
+        out_shape = output_shape()
         saver = checkpoint.for_loop(
             desc,
             {
