@@ -148,6 +148,16 @@ def test_fresh_removes_this_runs_checkpoints_and_names_reused_in_order_stay_apar
     assert not np.array_equal(np.asarray(a[0][1]), np.asarray(b[0][1]))
 
 
+def test_a_fresh_run_clears_every_loop_of_its_own_run_at_its_start_and_no_other(tmp_path):
+    checkpoint.activate(policy(tmp_path))
+    scan_in_chunks(walk, START, 4, 2, "first", progress=False)
+    scan_in_chunks(walk, START, 4, 2, "second", progress=False)
+    checkpoint.activate(policy(tmp_path, seed=1))  # another seed's checkpoints stay
+    scan_in_chunks(walk, START, 4, 2, "first", progress=False)
+    checkpoint.activate(policy(tmp_path, resume=False))  # before any loop has started
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["first-abc123-seed1"]
+
+
 def test_without_a_policy_or_a_name_nothing_is_saved_nor_for_a_short_loop(tmp_path):
     scan_in_chunks(walk, START, 4, 2, "walk", progress=False)
     checkpoint.activate(policy(tmp_path))

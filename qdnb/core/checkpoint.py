@@ -73,6 +73,21 @@ def activate(policy: CheckpointPolicy | None) -> None:
         _seen.clear()
         _resumed.clear()
         _cost.update(saves=0, seconds=0.0)
+    if policy is not None and not policy.resume:
+        clear_run(policy)
+
+
+def clear_run(policy: CheckpointPolicy) -> None:
+    """Remove every checkpoint of ``policy``'s config hash and seed, at the start of a
+    fresh run: a fresh run killed part-way must not leave older checkpoints of the
+    loops it had not reached, for a later resumed run to pick up."""
+    parent = Path(policy.directory)
+    pattern = f"*-{policy.config_hash[:12]}-seed{policy.seed}"
+    removed = [d for d in sorted(parent.glob(pattern)) if d.is_dir()] if parent.exists() else []
+    for directory in removed:
+        shutil.rmtree(directory)
+    if removed:
+        log(f"starting afresh: {len(removed)} earlier checkpoint directories of this run removed")
 
 
 def active() -> CheckpointPolicy | None:
