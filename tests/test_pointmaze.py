@@ -148,6 +148,23 @@ def test_batched_evaluation_shapes_and_determinism():
     np.testing.assert_array_equal(a.descriptor, b.descriptor)
 
 
+def test_stochastic_policies_get_a_key_per_step_and_per_episode():
+    """A keyed policy whose action is its key's uniform draw: actions differ across
+    steps and episodes, and the same evaluation key gives the same episodes."""
+    env = make_env("pointmaze", episode_length=20)
+    draw = lambda params, obs, key: jax.random.uniform(key, (2,), minval=-1, maxval=1) * params
+    run = lambda k: evaluate_policies(env, draw, jnp.ones((3,)), k, True, stochastic=True)
+    a, b = run(jax.random.PRNGKey(1)), run(jax.random.PRNGKey(1))
+    actions = np.asarray(a.trajectory["action"])  # episodes x time x 2
+    np.testing.assert_array_equal(actions, np.asarray(b.trajectory["action"]))
+    assert len(np.unique(actions[0, :, 0])) == actions.shape[1]  # a new key every step
+    assert not np.allclose(actions[0], actions[1])  # and every episode
+    still = evaluate_policies(
+        env, draw, jnp.zeros((3,)), jax.random.PRNGKey(1), True, stochastic=True
+    )
+    assert np.all(np.asarray(still.trajectory["action"]) == 0)  # the key reaches the policy only
+
+
 def test_unknown_environment_is_a_clear_error():
     with pytest.raises(
         ValueError, match="valid names: ant_omni, antmaze, anttrap, halfcheetah_uni, pointmaze"

@@ -22,8 +22,9 @@ def evaluate_policies(
     key: jax.Array,
     return_trajectory: bool = False,
     exploration_noise: jax.Array | float = 0.0,
+    stochastic: bool = False,
 ) -> Evaluation:
-    """Evaluate a batch of deterministic policies (leading axis of every leaf of
+    """Evaluate a batch of policies (deterministic unless ``stochastic``) (leading axis of every leaf of
     ``params``), one episode each, each from its own random initial state.
 
     One ``lax.scan`` over time whose body steps every environment at once
@@ -39,11 +40,15 @@ def evaluate_policies(
     ``exploration_noise`` (a scalar or one value per policy) adds Gaussian noise
     of that standard deviation to the actions (TD3's exploration), drawn from a
     key per episode folded with the step number.
+
+    ``stochastic`` policies are keyed: ``policy_apply(params, obs, key)`` samples an
+    action with a key of its own at every step (SAC's, DIAYN's and AGAC's actors),
+    drawn from the same per-episode key as the exploration noise.
     """
     batch = jax.tree.leaves(params)[0].shape[0]
     k_reset, k_noise = jax.random.split(key)
     states = jax.vmap(env.reset)(
-        jax.random.split(k_reset if _noisy(exploration_noise) else key, batch)
+        jax.random.split(k_reset if stochastic or _noisy(exploration_noise) else key, batch)
     )
     sigma = jnp.broadcast_to(jnp.asarray(exploration_noise, jnp.float32), (batch,))
     noise_keys = jax.random.split(k_noise, batch)
@@ -52,7 +57,11 @@ def evaluate_policies(
 
     def one_env(params, sigma, noise_key, carry):
         state, tally = carry
-        action = policy_apply(params, state.obs)
+        if stochastic:
+            step_key = jax.random.split(jax.random.fold_in(noise_key, state.steps))[1]
+            action = policy_apply(params, state.obs, step_key)
+        else:
+            action = policy_apply(params, state.obs)
         if _noisy(exploration_noise):
             noise = jax.random.normal(jax.random.fold_in(noise_key, state.steps), action.shape)
             action = jnp.clip(action + sigma * noise, -1.0, 1.0)
