@@ -132,3 +132,20 @@ def test_pga_me_and_pga_me_ls_iterate_fill_the_buffer_and_train_the_critic():
         )
         assert max(float(x) for x in critic_moved) > 0
         assert bool(algo.elites(state2.repertoire).filled.any())
+
+
+def test_tanh_gaussian_density_integrates_to_one_and_matches_its_samples():
+    from qdnb.nets.mlp import GaussianMLP, tanh_gaussian_log_prob, tanh_gaussian_sample
+
+    mean, log_std = jnp.array([0.3]), jnp.array([-0.5])
+    grid = jnp.linspace(-1 + 1e-5, 1 - 1e-5, 200_001)[:, None]
+    density = jnp.exp(jax.vmap(lambda a: tanh_gaussian_log_prob(mean, log_std, a))(grid))
+    mass = np.trapezoid(np.asarray(density, np.float64), np.asarray(grid[:, 0], np.float64))
+    np.testing.assert_allclose(mass, 1.0, atol=1e-3)
+    action, log_prob = tanh_gaussian_sample(mean, log_std, jax.random.PRNGKey(0))
+    assert -1 < float(action[0]) < 1
+    np.testing.assert_allclose(log_prob, tanh_gaussian_log_prob(mean, log_std, action), rtol=1e-4)
+    net = GaussianMLP((8,), action_size=3, log_std_bounds=(-2.0, 1.0))
+    params = net.init(jax.random.PRNGKey(1), jnp.zeros(5))
+    m, s = net.apply(params, 100 * jnp.ones((4, 5)))
+    assert m.shape == s.shape == (4, 3) and float(s.min()) >= -2 and float(s.max()) <= 1

@@ -24,8 +24,9 @@ def evaluate_policies(
     exploration_noise: jax.Array | float = 0.0,
     stochastic: bool = False,
 ) -> Evaluation:
-    """Evaluate a batch of policies (deterministic unless ``stochastic``) (leading axis of every leaf of
-    ``params``), one episode each, each from its own random initial state.
+    """Evaluate a batch of policies (leading axis of every leaf of ``params``; each
+    deterministic unless ``stochastic``), one episode each, each from its own random
+    initial state.
 
     One ``lax.scan`` over time whose body steps every environment at once
     (``vmap``), as a bare simulation loop would.  The scan keeps the fixed length
