@@ -15,7 +15,9 @@ from qdnb.chapters.ch3_qdpg import (
     build_algorithms,
     grid_coverage,
     reached_goal,
+    load_method_result,
     run_environment,
+    save_method_result,
 )
 from qdnb.envs import make_env
 from qdnb.envs.rollout import evaluate_policies
@@ -307,6 +309,29 @@ def test_qdpg_on_point_maze_runs_on_its_own_seed_count():
     assert out.methods["QD-PG"].history["descriptors"].shape[:2] == (2, 2)
     with pytest.raises(ValueError, match="pointmaze_qdpg_seeds=0 must be at least 1"):
         dataclasses.replace(tiny, pointmaze_qdpg_seeds=0)
+
+
+def test_a_saved_method_result_loads_back_under_its_config_only(tmp_path):
+    """What the baselines page reads of the QD-PG page's run: every array of the
+    result but the policies, and nothing under another config hash."""
+    cfg = config("ch3_qdpg", "tiny").with_pointmaze_iterations(2)
+    for name in ("QD-PG", "TD3"):  # with a grid, and without
+        r = run_environment(cfg, "pointmaze", jax.random.PRNGKey(0), False, (name,)).methods[name]
+        path = save_method_result(tmp_path / f"{name}.npz", "abc", r)
+        back = load_method_result(path, "abc")
+        assert load_method_result(path, "other") is None
+        assert load_method_result(tmp_path / "missing.npz", "abc") is None
+        assert set(back.history) == set(r.history) and back.seconds == pytest.approx(r.seconds)
+        for k in r.history:
+            np.testing.assert_array_equal(back.history[k], r.history[k])
+        for field in ("final_performance", "coverage", "env_steps", "cumulative_steps"):
+            np.testing.assert_array_equal(getattr(back, field), getattr(r, field))
+        np.testing.assert_array_equal(back.exit_steps, r.exit_steps)
+        if r.grid is None:
+            assert back.grid is None
+        else:
+            assert set(back.grid) == set(r.grid) - {"genotypes"}
+            np.testing.assert_array_equal(back.grid["fitnesses"], r.grid["fitnesses"])
 
 
 def test_the_target_critic_moves_on_every_critic_step_and_the_target_actor_on_actor_steps(maze):

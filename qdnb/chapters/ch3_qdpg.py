@@ -24,7 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from qdnb.core import paths
+from qdnb.core.config import config_hash
 from qdnb.core.evaluation import Algorithm
+from qdnb.core.io import load_arrays, load_summary, save_arrays
 from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
@@ -186,9 +189,9 @@ class QDPGConfig:
                     f"{name}: num_critic_steps={task.num_critic_steps} must be a multiple of "
                     f"policy_delay={self.policy_delay}"
                 )
-        unknown = set(self.ant_methods) - set(QDPG_METHODS)
+        unknown = set(self.ant_methods) - set(METHODS)
         if unknown:
-            raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(QDPG_METHODS)}")
+            raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(METHODS)}")
         for name, n in (
             ("num_seeds", self.num_seeds),
             ("pointmaze_qdpg_seeds", self.pointmaze_qdpg_seeds),
@@ -290,14 +293,22 @@ METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
     "TD3": _td3,
     "PGA-ME": _pga_me,
 }
-QDPG_METHODS = tuple(METHODS)  # in Table 3.4's order
+QDPG_METHODS = tuple(METHODS)  # this page's methods, in Table 3.4's order
 Config = QDPGConfig
 
 
 def build_algorithms(
-    cfg: QDPGConfig, env_name: str, env: Env | None = None
+    cfg: QDPGConfig,
+    env_name: str,
+    env: Env | None = None,
+    methods: tuple[str, ...] | None = None,
 ) -> dict[str, Algorithm]:
-    """Every method of ``cfg`` on ``env_name``, with its Table 3.2 settings."""
+    """The methods of ``cfg`` on ``env_name`` (or those of ``methods``, any of
+    ``METHODS``), with their Table 3.2 settings."""
+    methods = cfg.methods(env_name) if methods is None else methods
+    unknown = set(methods) - set(METHODS)
+    if unknown:
+        raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(METHODS)}")
     task = cfg.task(env_name)
     env = env if env is not None else make_task_env(cfg, env_name)
     network = MLP(task.policy_hidden + (env.action_size,), activation="relu")
@@ -323,7 +334,7 @@ def build_algorithms(
         fitness_offset=fitness_offset(env_name, env),
     )
     parts = {"env": env, "network": network, "td3": td3_config, "shared": shared}
-    return {method: METHODS[method](cfg, task, parts) for method in cfg.methods(env_name)}
+    return {method: METHODS[method](cfg, task, parts) for method in methods}
 
 
 def final_grid(state: Any) -> dict[str, np.ndarray] | None:
@@ -399,20 +410,12 @@ def run_environment(
     progress: bool = True,
     methods: tuple[str, ...] | None = None,
 ) -> EnvironmentResult:
-    """Run every method of ``cfg`` (or those of ``methods``) on ``env_name``,
-    each on ``cfg.seeds(env_name, method)`` seeds; ``history`` arrays have shape
-    ``(num_seeds, num_iterations + 1, ...)``."""
+    """Run every method of ``cfg`` (or those of ``methods``, any of ``METHODS``) on
+    ``env_name``, each on ``cfg.seeds(env_name, method)`` seeds; ``history`` arrays
+    have shape ``(num_seeds, num_iterations + 1, ...)``."""
     task = cfg.task(env_name)
     env = make_task_env(cfg, env_name)
-    algorithms = build_algorithms(cfg, env_name, env)
-    if methods is not None:
-        unknown = set(methods) - set(algorithms)
-        if unknown:
-            raise ValueError(
-                f"methods {sorted(unknown)} are not run on {env_name}; valid: "
-                f"{', '.join(algorithms)}"
-            )
-        algorithms = {m: algorithms[m] for m in methods}
+    algorithms = build_algorithms(cfg, env_name, env, methods)
     results: dict[str, MethodResult] = {}
     for method, algo in algorithms.items():
         keys = jax.random.split(key, cfg.seeds(env_name, method))
@@ -697,6 +700,93 @@ def summary_results(
         },
         "pointmaze_hand_path_return": float(hand.returns.mean()),
     }
+
+
+# ----- QD-PG's results, for Chapter 3's other pages (the baselines, the evolution strategies) -----
+
+
+def qdpg_path(scale: str, env_name: str):
+    return paths.run_dir(scale, "ch3_qdpg") / f"qdpg_{env_name}.npz"
+
+
+def save_method_result(path, digest: str, r: MethodResult):
+    """One method's result as an ``.npz`` artifact tagged with its config hash: its
+    history, its grid's fitnesses, descriptors and centroids (not the policies)."""
+    arrays = {f"history_{k}": v for k, v in r.history.items()}
+    if r.grid is not None:
+        arrays |= {f"grid_{k}": v for k, v in r.grid.items() if k != "genotypes"}
+    return save_arrays(
+        path,
+        digest,
+        **arrays,
+        final_performance=r.final_performance,
+        coverage=r.coverage,
+        env_steps=r.env_steps,
+        cumulative_steps=r.cumulative_steps,
+        seconds=r.seconds,
+        steady_seconds_per_iteration=r.steady_seconds_per_iteration,
+    )
+
+
+def load_method_result(path, digest: str) -> MethodResult | None:
+    """``save_method_result``'s result (its grid without policies), or ``None`` when
+    missing or computed under another config."""
+    a = load_arrays(path, digest)
+    if a is None:
+        return None
+    part = lambda prefix: {k[len(prefix) :]: v for k, v in a.items() if k.startswith(prefix)}
+    return MethodResult(
+        history=part("history_"),
+        grid=part("grid_") or None,
+        final_performance=a["final_performance"],
+        coverage=a["coverage"],
+        env_steps=a["env_steps"],
+        cumulative_steps=a["cumulative_steps"],
+        seconds=float(a["seconds"]),
+        steady_seconds_per_iteration=float(a["steady_seconds_per_iteration"]),
+    )
+
+
+def save_qdpg_results(
+    cfg: QDPGConfig, scale: str, results_by_env: dict[str, EnvironmentResult]
+) -> list:
+    """QD-PG's result on each environment of this run, for the chapter's next pages."""
+    digest = config_hash(cfg)
+    return [
+        save_method_result(qdpg_path(scale, env_name), digest, res.methods["QD-PG"])
+        for env_name, res in results_by_env.items()
+    ]
+
+
+def load_or_recompute_qdpg(
+    cfg: QDPGConfig, scale: str, seed: int, progress: bool = True
+) -> tuple[dict[str, MethodResult], dict[str, str]]:
+    """QD-PG's result on each environment, read from this scale's ``ch3_qdpg`` run, or
+    recomputed (and saved there) with that notebook's keys, so it is the same result:
+    ``results[env]`` and ``status[env]`` (``"loaded"``, or why it was recomputed)."""
+    digest = config_hash(cfg)
+    summary = load_summary(scale, "ch3_qdpg")
+    seed_differs = summary is not None and summary.get("seed") != seed
+    results: dict[str, MethodResult] = {}
+    status: dict[str, str] = {}
+    for i, env_name in enumerate(ENVIRONMENTS):
+        path = qdpg_path(scale, env_name)
+        loaded = None if seed_differs else load_method_result(path, digest)
+        if loaded is not None:
+            results[env_name], status[env_name] = loaded, "loaded from the ch3_qdpg run"
+            continue
+        status[env_name] = (
+            "recomputed: the ch3_qdpg run used another seed"
+            if seed_differs
+            else "recomputed: no ch3_qdpg run"
+            if not path.exists()
+            else "recomputed: the ch3_qdpg run used another config"
+        )
+        key = jax.random.fold_in(jax.random.PRNGKey(seed), i)  # the ch3_qdpg notebook's key
+        out = run_environment(cfg, env_name, key, progress, methods=("QD-PG",))
+        save_method_result(path, digest, out.methods["QD-PG"])
+        results[env_name] = load_method_result(path, digest)
+    return results, status
 
 
 # The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
