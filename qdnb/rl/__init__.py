@@ -1,2 +1,3 @@
 """Reinforcement learning: TD3 (its twin critic and policy-gradient steps), the replay
-buffer, and the RL agents that serve as baselines (``agents``)."""
+buffer, the TD3 agent (``agents``) and Chapter 3's other policy-gradient baselines,
+one file each: ``sac``, ``rnd``, ``cemrl``, ``p3s``, ``agac``, ``diayn``."""
