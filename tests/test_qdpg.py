@@ -14,8 +14,8 @@ from qdnb.chapters.ch3_qdpg import (
     QDPGConfig,
     build_algorithms,
     grid_coverage,
-    reached_goal,
     load_method_result,
+    reached_goal,
     run_environment,
     save_method_result,
 )

@@ -41,7 +41,13 @@ from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.metrics import grid_cell
 from qdnb.qd.pga import PGAMapElites
 from qdnb.qd.qdpg import QDPG
+from qdnb.rl.agac import AGACAgent, AGACConfig
 from qdnb.rl.agents import TD3Agent
+from qdnb.rl.cemrl import CEMRLAgent
+from qdnb.rl.diayn import DIAYN
+from qdnb.rl.p3s import P3STD3Agent
+from qdnb.rl.rnd import RNDAgent
+from qdnb.rl.sac import SACAgent
 from qdnb.rl.td3 import TD3Config
 
 
@@ -284,6 +290,77 @@ def _td3(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
     )
 
 
+def _sac(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    return SACAgent(
+        env=parts["env"],
+        network=parts["network"],
+        td3_config=parts["td3"],
+        num_episodes=task.num_actors,
+        num_critic_steps=task.num_critic_steps,
+        buffer_size=task.buffer_size,
+    )
+
+
+def _diayn(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    return DIAYN(
+        env=parts["env"],
+        network=parts["network"],
+        td3_config=parts["td3"],
+        num_episodes=task.num_actors,
+        num_critic_steps=task.num_critic_steps,
+        buffer_size=task.buffer_size,
+    )
+
+
+def _rnd(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    return RNDAgent(
+        env=parts["env"],
+        network=parts["network"],
+        td3_config=parts["td3"],
+        num_episodes=task.num_actors,
+        num_critic_steps=task.num_critic_steps,
+        exploration_noise=cfg.exploration_noise,
+        buffer_size=task.buffer_size,
+    )
+
+
+def _p3s_td3(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    # one learner per episode; the critic steps are shared among the learners
+    return P3STD3Agent(
+        env=parts["env"],
+        network=parts["network"],
+        td3_config=parts["td3"],
+        num_episodes=task.num_actors,
+        num_critic_steps=task.num_critic_steps,
+        exploration_noise=cfg.exploration_noise,
+        buffer_size=task.buffer_size,
+    )
+
+
+def _cem_rl(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    # episode 0 plays the mean actor (its performance), the others the CEM population
+    return CEMRLAgent(
+        env=parts["env"],
+        network=parts["network"],
+        td3_config=parts["td3"],
+        num_episodes=task.num_actors,
+        num_critic_steps=task.num_critic_steps,
+        num_actor_steps=task.num_pg_steps,
+        buffer_size=task.buffer_size,
+    )
+
+
+def _agac(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+    # on-policy: no replay buffer nor critic steps; its bonus decays over the run's iterations
+    return AGACAgent(
+        env=parts["env"],
+        network=parts["network"],
+        num_episodes=task.num_actors,
+        config=AGACConfig(gamma=cfg.discount),
+        num_iterations=task.num_iterations,
+    )
+
+
 # name -> builder(cfg, task, shared parts): adding a method is one entry (and its code)
 METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
     "QD-PG": _qdpg("alternate"),
@@ -292,8 +369,14 @@ METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
     "Q-PG": _qdpg("quality"),
     "TD3": _td3,
     "PGA-ME": _pga_me,
+    "SAC": _sac,
+    "RND": _rnd,
+    "CEM-RL": _cem_rl,
+    "P3S-TD3": _p3s_td3,
+    "AGAC": _agac,
+    "DIAYN": _diayn,
 }
-QDPG_METHODS = tuple(METHODS)  # this page's methods, in Table 3.4's order
+QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")  # this page's methods
 Config = QDPGConfig
 
 
@@ -497,21 +580,25 @@ def steps_to_exit(result: MethodResult) -> np.ndarray:
 # ----- the chapter's claims and summary -----
 
 
+def beats(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the per-seed values ``a`` beat ``b``: on the mean over seeds, and on
+    most of the seeds of ``a`` (each against the mean of ``b``)."""
+    target = float(np.mean(b))
+    return bool(np.mean(a) > target and np.mean(np.asarray(a) > target) > 0.5)
+
+
+def per_seed(p: np.ndarray) -> str:
+    """A mean, and its seeds when there are several."""
+    seeds = f" (seeds: {', '.join(f'{v:.1f}' for v in p)})" if len(p) > 1 else ""
+    return f"{np.mean(p):.1f}{seeds}"
+
+
 def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool, str]]:
     """The chapter's Point-Maze claims as ``(claim, holds, numbers)``.  A comparison
     holds on the mean over seeds and on most of the seeds of the method it is about."""
     pm = results_by_env["pointmaze"].methods
     perf = lambda name: pm[name].final_performance
     cov = lambda name: float(pm[name].coverage.mean())
-
-    def beats(name: str, other: str) -> bool:
-        target = float(perf(other).mean())
-        return bool(perf(name).mean() > target and np.mean(perf(name) > target) > 0.5)
-
-    def per_seed(name: str) -> str:
-        p = perf(name)
-        seeds = f" (seeds: {', '.join(f'{v:.1f}' for v in p)})" if len(p) > 1 else ""
-        return f"{p.mean():.1f}{seeds}"
 
     reached = pm["QD-PG"].reached_exit
     return [
@@ -522,13 +609,13 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
         ),
         (
             "QD-PG beats TD3 on final performance (mean and most seeds)",
-            beats("QD-PG", "TD3"),
-            f"{per_seed('QD-PG')} vs {per_seed('TD3')}",
+            beats(perf("QD-PG"), perf("TD3")),
+            f"{per_seed(perf('QD-PG'))} vs {per_seed(perf('TD3'))}",
         ),
         (
             "QD-PG beats Q-PG on final performance (mean and most seeds)",
-            beats("QD-PG", "Q-PG"),
-            f"{per_seed('QD-PG')} vs {per_seed('Q-PG')}",
+            beats(perf("QD-PG"), perf("Q-PG")),
+            f"{per_seed(perf('QD-PG'))} vs {per_seed(perf('Q-PG'))}",
         ),
         (
             "D-PG explores: covers more of the grid than Q-PG and TD3",
@@ -538,14 +625,17 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
     ]
 
 
-def method_summaries(results_by_env: dict[str, EnvironmentResult]) -> dict[str, dict[str, Any]]:
-    """``summary.json``'s per-environment, per-method entries; a method not run at
-    this scale is said to be so (``"ran": False``), not invented."""
+def method_summaries(
+    results_by_env: dict[str, EnvironmentResult], expected: tuple[str, ...] = QDPG_METHODS
+) -> dict[str, dict[str, Any]]:
+    """``summary.json``'s per-environment, per-method entries; a method of ``expected``
+    not run at this scale is said to be so (``"ran": False``), not invented."""
     out: dict[str, dict[str, Any]] = {}
     for env_name, res in results_by_env.items():
         out[env_name] = {}
         for name, r in res.methods.items():
             entry = {
+                "ran": True,
                 "final_performance": float(r.final_performance.mean()),
                 "final_performance_std": float(r.final_performance.std()),
                 "final_performance_per_seed": [float(v) for v in r.final_performance],
@@ -557,7 +647,7 @@ def method_summaries(results_by_env: dict[str, EnvironmentResult]) -> dict[str, 
                 entry["reached_goal"] = bool(r.reached_exit.any())
                 entry["steps_to_exit"] = [None if np.isnan(v) else float(v) for v in r.exit_steps]
             out[env_name][name] = entry
-        for name in QDPG_METHODS:
+        for name in expected:
             if name not in res.methods:
                 out[env_name][name] = {
                     "ran": False,

@@ -23,6 +23,12 @@ METHOD_COLORS = {
     "D-PG": "#bcbd22",
     "Q-PG": "#393b79",
     "TD3": "#525252",  # Chapter 3
+    "SAC": "#a6761d",
+    "RND": "#66a61e",
+    "CEM-RL": "#e7298a",
+    "P3S-TD3": "#1a9850",
+    "AGAC": "#d95f02",
+    "DIAYN": "#00bcd4",  # Chapter 3's baselines
     "flt": "#8c6d31",
     "persistence": "#e6ab02",
     "mean_frame": "#1b9e77",  # Chapter 5's predictors
@@ -230,6 +236,30 @@ def positions_over_time(ax: plt.Axes, descriptors: np.ndarray, title: str):
         zorder=3,
     )
     ax.set_title(title, fontsize=10)
+    return sc
+
+
+def coverage_map(
+    ax: plt.Axes,
+    descriptors: np.ndarray,
+    title: str,
+    walls: np.ndarray | None = None,
+    radius: float = 0.0,
+    bounds: tuple | None = None,
+):
+    """Figure 3.8's panel: ``positions_over_time`` over Point-Maze (``walls`` None) or
+    over an ant maze's capsule ``walls`` within ``bounds`` (low, high); returns the
+    scatter for a colour bar."""
+    sc = positions_over_time(ax, descriptors, title)
+    if walls is None:
+        draw_pointmaze(ax)
+    else:
+        draw_capsule_walls(ax, walls, radius)
+        (x0, y0), (x1, y1) = bounds
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        ax.set_aspect("equal")
+        ax.grid(False)
     return sc
 
 
