@@ -50,6 +50,19 @@ def test_notebook_runs_at_tiny_scale(name):
         fast = results["fast_adaptation"]
         assert fast["env"] == "antmaze" and fast["goals"] > 0 and fast["budget"] > 0
         assert fast["mean"] <= 0.0 and fast["std"] >= 0.0
+    if name == "ch3_baselines":
+        results = summary["results"]
+        baselines = ("SAC", "RND", "CEM-RL", "P3S-TD3", "AGAC", "DIAYN")
+        for env in ("pointmaze", "antmaze", "anttrap"):
+            assert set(results[env]) == {"QD-PG", *baselines}
+            for method, r in results[env].items():
+                assert {"final_performance", "coverage", "env_steps", "ran"} <= set(r)
+                if r["ran"]:
+                    assert 0.0 < r["coverage"] <= 1.0 and r["env_steps"] > 0
+                    assert isinstance(r["final_performance"], float)
+            assert results["qdpg_source"][env].startswith(("loaded", "recomputed"))
+        assert all(results["pointmaze"][m]["ran"] for m in baselines)
+        assert 0 <= results["claims_held"] <= results["claims_total"] == 6
     if name == "ch4_qdt":
         results = summary["results"]
         for env in ("ant_omni", "halfcheetah_uni"):
