@@ -31,6 +31,8 @@ from qdnb.chapters.ch3_qdpg import (
     run_environment,
 )
 from qdnb.chapters.ch3_qdpg import SCALES as QDPG_SCALES
+from qdnb.core.config import config_hash
+from qdnb.core.io import load_summary
 
 BASELINES = ("SAC", "RND", "CEM-RL", "P3S-TD3", "AGAC", "DIAYN")  # in Table 3.4's order
 
@@ -260,6 +262,26 @@ def summary_results(cfg: BaselinesConfig, result: Result) -> dict[str, Any]:
         "qdpg_source": dict(result.qdpg_status),
         **method_summaries(result.by_env, expected=("QD-PG",) + BASELINES),
     }
+
+
+def qdpg_page_methods(cfg: BaselinesConfig, scale: str, seed: int) -> tuple[dict | None, str]:
+    """The QD-PG page's other methods (its ablations, TD3, PGA-ME) as its run's
+    ``summary.json`` reports them, ``results[env][method]``, for Table 3.4 complete;
+    ``None`` and why when that run is missing, of another seed or of another config."""
+    summary = load_summary(scale, "ch3_qdpg")
+    if summary is None:
+        return None, "no ch3_qdpg run at this scale"
+    if summary.get("seed") != seed or summary.get("config_hash") != config_hash(cfg.tasks):
+        return None, "the ch3_qdpg run used another seed or config"
+    results = summary["results"]
+    return {
+        env_name: {
+            name: entry
+            for name, entry in results[env_name].items()
+            if name != "QD-PG" and entry.get("ran", True)
+        }
+        for env_name in ENVIRONMENTS
+    }, "read from the ch3_qdpg run's summary.json"
 
 
 def final_table(result: Result) -> dict[str, dict[str, str]]:
