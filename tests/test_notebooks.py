@@ -63,6 +63,19 @@ def test_notebook_runs_at_tiny_scale(name):
             assert results["qdpg_source"][env].startswith(("loaded", "recomputed"))
         assert all(results["pointmaze"][m]["ran"] for m in baselines)
         assert 0 <= results["claims_held"] <= results["claims_total"] == 6
+    if name == "ch3_evolution":
+        results = summary["results"]
+        for env in ("pointmaze", "antmaze"):
+            assert set(results[env]) == {"QD-PG", "ME-ES", "NSR-ES", "NSRA-ES"}
+            for method, r in results[env].items():
+                assert {"final_performance", "steps_to_goal", "ratio_to_qdpg", "env_steps"} <= set(
+                    r
+                )
+                if r["ran"]:
+                    assert isinstance(r["final_performance"], float) and r["env_steps"] > 0
+                    assert r["steps_to_goal"] is None or 0 < r["steps_to_goal"] <= r["env_steps"]
+        assert all(results["pointmaze"][m]["ran"] for m in ("ME-ES", "NSR-ES", "NSRA-ES"))
+        assert results["claims_total"] == 1 and results["claims_held"] in (0, 1)
     if name == "ch4_qdt":
         results = summary["results"]
         for env in ("ant_omni", "halfcheetah_uni"):

@@ -50,6 +50,7 @@ CHAPTERS: tuple[Chapter, ...] = (
     Chapter("ch2_primer", "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)"),
     Chapter("ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap"),
     Chapter("ch3_baselines", "Chapter 3: the policy-gradient baselines (Table 3.4)"),
+    Chapter("ch3_evolution", "Chapter 3: the evolutionary competitors (Table 3.3)"),
     Chapter(
         "ch4_reproducibility", "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni"
     ),

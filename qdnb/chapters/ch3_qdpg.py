@@ -38,6 +38,7 @@ from qdnb.nets.mlp import MLP
 from qdnb.qd.adaptation import bayes_opt, random_goals, random_search, reach_scores
 from qdnb.qd.algorithms import run_seeds
 from qdnb.qd.cvt import grid_centroids
+from qdnb.qd.es import MEES, NSRAES, NSRES
 from qdnb.qd.metrics import grid_cell
 from qdnb.qd.pga import PGAMapElites
 from qdnb.qd.qdpg import QDPG
@@ -361,6 +362,24 @@ def _agac(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
     )
 
 
+def _evolution_strategy(cls: type) -> Callable[[QDPGConfig, QDPGTask, dict], Algorithm]:
+    """An ES method whose generation is ``task.num_actors`` perturbations (the chapter's
+    evolution page sets it), with its archive as long as the run (the reference codes
+    keep every centre's descriptor) and, for ME-ES, the task's grid."""
+
+    def build(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+        extra = {"centroids": parts["shared"]["centroids"]} if cls is MEES else {}
+        return cls(
+            env=parts["env"],
+            network=parts["network"],
+            num_perturbations=task.num_actors,
+            archive_size=max(1000, task.num_iterations + 1),
+            **extra,
+        )
+
+    return build
+
+
 # name -> builder(cfg, task, shared parts): adding a method is one entry (and its code)
 METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
     "QD-PG": _qdpg("alternate"),
@@ -375,6 +394,9 @@ METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
     "P3S-TD3": _p3s_td3,
     "AGAC": _agac,
     "DIAYN": _diayn,
+    "ME-ES": _evolution_strategy(MEES),
+    "NSR-ES": _evolution_strategy(NSRES),
+    "NSRA-ES": _evolution_strategy(NSRAES),
 }
 QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")  # this page's methods
 Config = QDPGConfig

@@ -29,6 +29,9 @@ METHOD_COLORS = {
     "P3S-TD3": "#1a9850",
     "AGAC": "#d95f02",
     "DIAYN": "#00bcd4",  # Chapter 3's baselines
+    "ME-ES": "#b2182b",
+    "NSR-ES": "#2166ac",
+    "NSRA-ES": "#4dac26",  # Chapter 3's evolution strategies
     "flt": "#8c6d31",
     "persistence": "#e6ab02",
     "mean_frame": "#1b9e77",  # Chapter 5's predictors

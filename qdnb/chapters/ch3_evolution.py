@@ -1,0 +1,244 @@
+"""Chapter 3's evolutionary competitors (Table 3.3): ME-ES, NSR-ES and NSRA-ES, and
+QD-PG's sample efficiency against them.
+
+Each evolution strategy (``qdnb.qd.es``) is one entry of the chapter's method
+registry (``ch3_qdpg.METHODS``) and runs through the same ``run_environment`` as
+QD-PG, on the QD-PG page's environments, episode lengths and policy networks; a
+generation plays ``num_perturbations`` perturbed policies (plus the centre, or the
+meta-population's centres, or ME-ES's last offspring, in the same batch), so a
+method's budget is ``num_steps`` environment steps spread over
+``num_steps // (num_perturbations * episode_length)`` generations.  Steps to the
+goal are read from every evaluated episode: on Point-Maze the first environment step
+at which an episode ended in the exit zone, on Ant-Maze the first at which the best
+reward exceeded -10 (Table 3.3).  QD-PG's own result is the QD-PG page's run at the
+same scale (``load_or_recompute_qdpg``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import numpy as np
+
+from qdnb.chapters.ch3_qdpg import SCALES as QDPG_SCALES
+from qdnb.chapters.ch3_qdpg import (
+    EnvironmentResult,
+    MethodResult,
+    QDPGConfig,
+    load_or_recompute_qdpg,
+    run_environment,
+)
+
+EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
+ENVIRONMENTS = ("pointmaze", "antmaze")  # Table 3.3 is Ant-Maze's; Point-Maze is where ES is cheap
+FACTOR = 10  # the claim: QD-PG needs at least 10x fewer steps than the fastest ES method
+
+
+@dataclass(frozen=True)
+class EvolutionConfig:
+    """The evolution page: the QD-PG page's config at the same scale (``tasks``), the
+    seeds of every ES method, their perturbations per generation and budgets on
+    Point-Maze and Ant-Maze, and the methods run on Ant-Maze (all three on
+    Point-Maze)."""
+
+    tasks: QDPGConfig
+    num_seeds: int
+    num_perturbations: int
+    pointmaze_steps: int
+    ant_perturbations: int
+    antmaze_steps: int
+    ant_methods: tuple[str, ...] = EVOLUTION
+    chunk_size: int = 10
+
+    def __post_init__(self):
+        unknown = set(self.ant_methods) - set(EVOLUTION)
+        if unknown:
+            raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(EVOLUTION)}")
+        for name in ("num_seeds", "chunk_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}={getattr(self, name)} must be at least 1")
+        for name in ("num_perturbations", "ant_perturbations"):
+            n = getattr(self, name)
+            if n < 2 or n % 2:
+                raise ValueError(f"{name}={n} must be an even number >= 2 (antithetic pairs)")
+        self.es_tasks()  # a budget of less than one generation is refused there
+
+    def methods(self, env_name: str) -> tuple[str, ...]:
+        if env_name not in ENVIRONMENTS:
+            raise ValueError(f"unknown environment {env_name!r}; valid: {', '.join(ENVIRONMENTS)}")
+        return EVOLUTION if env_name == "pointmaze" else self.ant_methods
+
+    def es_tasks(self) -> QDPGConfig:
+        """The QD-PG page's tasks with the ES generations and budgets, on this page's seeds."""
+        t = self.tasks
+        return dataclasses.replace(
+            t,
+            num_seeds=self.num_seeds,
+            pointmaze_qdpg_seeds=None,
+            chunk_size=self.chunk_size,
+            pointmaze=dataclasses.replace(
+                t.pointmaze, num_actors=self.num_perturbations, num_steps=self.pointmaze_steps
+            ),
+            antmaze=dataclasses.replace(
+                t.antmaze, num_actors=self.ant_perturbations, num_steps=self.antmaze_steps
+            ),
+        )
+
+
+Config = EvolutionConfig
+
+
+def steps_to_goal(env_name: str, r: MethodResult) -> np.ndarray:
+    """Per seed, the environment steps when the goal was first reached (``inf`` if never):
+    the exit zone on Point-Maze, a best reward above -10 on Ant-Maze."""
+    if env_name == "pointmaze":
+        return np.where(np.isnan(r.exit_steps), np.inf, r.exit_steps)
+    return np.asarray(r.steps_to_goal())
+
+
+@dataclass(frozen=True)
+class Result:
+    qdpg: dict[str, MethodResult]
+    qdpg_status: dict[str, str]
+    evolution: dict[str, EnvironmentResult]
+
+    def methods(self, env_name: str) -> dict[str, MethodResult]:
+        """QD-PG first, then the ES methods run on ``env_name``."""
+        return {"QD-PG": self.qdpg[env_name], **self.evolution[env_name].methods}
+
+    def steps(self, env_name: str) -> dict[str, np.ndarray]:
+        return {name: steps_to_goal(env_name, r) for name, r in self.methods(env_name).items()}
+
+
+def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> Result:
+    """QD-PG's results (read or recomputed), then every ES method on each environment
+    with the QD-PG page's key for that environment."""
+    qdpg, status = load_or_recompute_qdpg(cfg.tasks, scale, seed, progress)
+    tasks = cfg.es_tasks()
+    evolution = {
+        env_name: run_environment(
+            tasks,
+            env_name,
+            jax.random.fold_in(jax.random.PRNGKey(seed), i),  # i: the QD-PG page's order
+            progress,
+            methods=cfg.methods(env_name),
+        )
+        for i, env_name in enumerate(("pointmaze", "antmaze"))
+    }
+    return Result(
+        {e: qdpg[e] for e in ENVIRONMENTS}, {e: status[e] for e in ENVIRONMENTS}, evolution
+    )
+
+
+def mean_steps(steps: np.ndarray) -> float:
+    """The mean over seeds of steps to the goal (``inf`` when a seed never reached it)."""
+    return float(np.mean(steps))
+
+
+def sample_efficiency(result: Result, env_name: str = "pointmaze") -> tuple[str, bool, str]:
+    """The claim on ``env_name``: QD-PG reaches the goal with at least ``FACTOR`` times
+    fewer environment steps than the fastest ES method, on the mean over seeds and on
+    most of QD-PG's seeds (each against the fastest method's mean)."""
+    steps = result.steps(env_name)
+    qd = steps.pop("QD-PG")
+    fastest = min(steps, key=lambda n: mean_steps(steps[n]))
+    target = mean_steps(steps[fastest]) / FACTOR
+    holds = bool(
+        np.isfinite(mean_steps(qd)) and mean_steps(qd) <= target and np.mean(qd <= target) > 0.5
+    )
+    numbers = (
+        f"QD-PG {', '.join(f'{v:.3g}' for v in qd)} steps; fastest ES: {fastest}, "
+        f"{', '.join(f'{v:.3g}' for v in steps[fastest])} (inf: never reached)"
+    )
+    claim = f"QD-PG reaches the goal with {FACTOR}x fewer steps than the fastest ES method"
+    return claim, holds, numbers
+
+
+def ratio_to_qdpg(result: Result, env_name: str) -> dict[str, float | None]:
+    """Per method, its mean steps to the goal over QD-PG's (``None`` when either is
+    never reached on some seed)."""
+    steps = result.steps(env_name)
+    qd = mean_steps(steps["QD-PG"])
+    return {
+        name: (mean_steps(s) / qd if np.isfinite(qd) and np.isfinite(mean_steps(s)) else None)
+        for name, s in steps.items()
+    }
+
+
+def summary_results(cfg: EvolutionConfig, result: Result) -> dict[str, Any]:
+    """``results[env][method]``: final performance, steps to the goal (``None`` when never
+    reached, per seed and mean), ratio to QD-PG, environment steps; the claim."""
+    claim, holds, numbers = sample_efficiency(result)
+    out: dict[str, Any] = {
+        "headline": f"{'holds' if holds else 'does not hold'}: {claim} on Point-Maze",
+        "claims_held": int(holds),
+        "claims_total": 1,
+        "claim_numbers": numbers,
+        "num_seeds": cfg.num_seeds,
+        "qdpg_source": dict(result.qdpg_status),
+    }
+    for env_name in ENVIRONMENTS:
+        ratios = ratio_to_qdpg(result, env_name)
+        out[env_name] = {}
+        for name, r in result.methods(env_name).items():
+            s = steps_to_goal(env_name, r)
+            out[env_name][name] = {
+                "ran": True,
+                "final_performance": float(r.final_performance.mean()),
+                "final_performance_per_seed": [float(v) for v in r.final_performance],
+                "steps_to_goal": None if not np.isfinite(mean_steps(s)) else mean_steps(s),
+                "steps_to_goal_per_seed": [None if not np.isfinite(v) else float(v) for v in s],
+                "ratio_to_qdpg": ratios[name],
+                "env_steps": float(r.env_steps.mean()),
+            }
+        for name in EVOLUTION:
+            out[env_name].setdefault(
+                name,
+                {
+                    "ran": False,
+                    "final_performance": None,
+                    "steps_to_goal": None,
+                    "ratio_to_qdpg": None,
+                    "env_steps": 0,
+                },
+            )
+    return out
+
+
+def _scale(name: str, **kw) -> EvolutionConfig:
+    return EvolutionConfig(tasks=QDPG_SCALES[name], **kw)
+
+
+# The page's configs, one per scale (the rule of each is in the notebook's scale cell).
+SCALES = {
+    "tiny": _scale(
+        "tiny",
+        num_seeds=1,
+        num_perturbations=16,
+        pointmaze_steps=5 * 16 * 200,
+        ant_perturbations=4,
+        antmaze_steps=2 * 4 * 50,
+        ant_methods=("ME-ES",),
+        chunk_size=5,
+    ),
+    "small": _scale(
+        "small",
+        num_seeds=2,
+        num_perturbations=1000,
+        pointmaze_steps=100_000_000,
+        ant_perturbations=100,
+        antmaze_steps=500_000,
+        ant_methods=("ME-ES",),
+    ),
+    "paper": _scale(
+        "paper",
+        num_seeds=5,
+        num_perturbations=10_000,
+        pointmaze_steps=100_000_000,
+        ant_perturbations=10_000,
+        antmaze_steps=30_000_000_000,
+    ),
+}
