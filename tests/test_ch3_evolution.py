@@ -85,6 +85,13 @@ def test_configs_refuse_bad_values_and_the_registry_builds_each_es():
         tasks = cfg.es_tasks()
         assert tasks.pointmaze.num_actors == cfg.num_perturbations
         assert tasks.pointmaze.episode_length == cfg.tasks.pointmaze.episode_length
+        ants = cfg.es_tasks("antmaze")
+        assert ants.antmaze.num_actors == cfg.ant_perturbations
+        assert (
+            ants.seeds("antmaze", "ME-ES")
+            == cfg.seeds("antmaze")
+            == (cfg.ant_seeds or cfg.num_seeds)
+        )
     tiny = config("ch3_evolution", "tiny")
     algos = build_algorithms(tiny.es_tasks(), "pointmaze", methods=EVOLUTION)
     assert [a.num_perturbations for a in algos.values()] == [tiny.num_perturbations] * 3
@@ -93,6 +100,8 @@ def test_configs_refuse_bad_values_and_the_registry_builds_each_es():
         dataclasses.replace(tiny, num_perturbations=15)
     with pytest.raises(ValueError, match="unknown methods"):
         dataclasses.replace(tiny, ant_methods=("ES",))
+    with pytest.raises(ValueError, match="ant_seeds=0"):
+        dataclasses.replace(tiny, ant_seeds=0)
     with pytest.raises(ValueError, match="less than one iteration"):
         dataclasses.replace(tiny, pointmaze_steps=10)
     with pytest.raises(ValueError, match="unknown environment"):

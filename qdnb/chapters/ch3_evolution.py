@@ -52,14 +52,16 @@ class EvolutionConfig:
     antmaze_steps: int
     ant_methods: tuple[str, ...] = EVOLUTION
     chunk_size: int = 10
+    ant_seeds: int | None = None  # seeds on Ant-Maze (None: num_seeds)
 
     def __post_init__(self):
         unknown = set(self.ant_methods) - set(EVOLUTION)
         if unknown:
             raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(EVOLUTION)}")
-        for name in ("num_seeds", "chunk_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}={getattr(self, name)} must be at least 1")
+        for name in ("num_seeds", "chunk_size", "ant_seeds"):
+            n = getattr(self, name)
+            if n is not None and n < 1:
+                raise ValueError(f"{name}={n} must be at least 1")
         for name in ("num_perturbations", "ant_perturbations"):
             n = getattr(self, name)
             if n < 2 or n % 2:
@@ -71,12 +73,20 @@ class EvolutionConfig:
             raise ValueError(f"unknown environment {env_name!r}; valid: {', '.join(ENVIRONMENTS)}")
         return EVOLUTION if env_name == "pointmaze" else self.ant_methods
 
-    def es_tasks(self) -> QDPGConfig:
-        """The QD-PG page's tasks with the ES generations and budgets, on this page's seeds."""
+    def seeds(self, env_name: str) -> int:
+        """How many seeds each ES method runs on ``env_name``."""
+        self.methods(env_name)  # a clear error on an unknown environment
+        if env_name == "pointmaze" or self.ant_seeds is None:
+            return self.num_seeds
+        return self.ant_seeds
+
+    def es_tasks(self, env_name: str = "pointmaze") -> QDPGConfig:
+        """The QD-PG page's tasks with the ES generations and budgets, on this page's
+        seeds for ``env_name``."""
         t = self.tasks
         return dataclasses.replace(
             t,
-            num_seeds=self.num_seeds,
+            num_seeds=self.seeds(env_name),
             pointmaze_qdpg_seeds=None,
             chunk_size=self.chunk_size,
             pointmaze=dataclasses.replace(
@@ -117,10 +127,9 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
     """QD-PG's results (read or recomputed), then every ES method on each environment
     with the QD-PG page's key for that environment."""
     qdpg, status = load_or_recompute_qdpg(cfg.tasks, scale, seed, progress)
-    tasks = cfg.es_tasks()
     evolution = {
         env_name: run_environment(
-            tasks,
+            cfg.es_tasks(env_name),
             env_name,
             jax.random.fold_in(jax.random.PRNGKey(seed), i),  # i: the QD-PG page's order
             progress,
@@ -177,7 +186,7 @@ def summary_results(cfg: EvolutionConfig, result: Result) -> dict[str, Any]:
         "claims_held": int(holds),
         "claims_total": 1,
         "claim_numbers": numbers,
-        "num_seeds": cfg.num_seeds,
+        "num_seeds": {env_name: cfg.seeds(env_name) for env_name in ENVIRONMENTS},
         "qdpg_source": dict(result.qdpg_status),
     }
     for env_name in ENVIRONMENTS:
@@ -232,6 +241,7 @@ SCALES = {
         ant_perturbations=100,
         antmaze_steps=500_000,
         ant_methods=("ME-ES",),
+        ant_seeds=1,
     ),
     "paper": _scale(
         "paper",
