@@ -30,11 +30,14 @@ from qdnb.chapters.ch3_qdpg import (
     per_seed,
     run_environment,
 )
+from qdnb.chapters.ch3_qdpg import METHODS as CHAPTER_METHODS
 from qdnb.chapters.ch3_qdpg import SCALES as QDPG_SCALES
 from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
 
 BASELINES = ("SAC", "RND", "CEM-RL", "P3S-TD3", "AGAC", "DIAYN")  # in Table 3.4's order
+# this page's methods: their builders in the chapter's method registry
+METHODS = {name: CHAPTER_METHODS[name] for name in BASELINES}
 
 
 @dataclass(frozen=True)

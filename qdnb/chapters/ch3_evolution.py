@@ -23,6 +23,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from qdnb.chapters.ch3_qdpg import METHODS as CHAPTER_METHODS
 from qdnb.chapters.ch3_qdpg import SCALES as QDPG_SCALES
 from qdnb.chapters.ch3_qdpg import (
     EnvironmentResult,
@@ -33,6 +34,8 @@ from qdnb.chapters.ch3_qdpg import (
 )
 
 EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
+# this page's methods: their builders in the chapter's method registry
+METHODS = {name: CHAPTER_METHODS[name] for name in EVOLUTION}
 ENVIRONMENTS = ("pointmaze", "antmaze")  # Table 3.3 is Ant-Maze's; Point-Maze is where ES is cheap
 FACTOR = 10  # the claim: QD-PG needs at least 10x fewer steps than the fastest ES method
 
