@@ -279,76 +279,34 @@ def _pga_me(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
     )
 
 
-def _td3(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
-    return TD3Agent(
-        env=parts["env"],
-        network=parts["network"],
-        td3_config=parts["td3"],
-        num_episodes=task.num_actors,
-        num_critic_steps=task.num_critic_steps,
-        exploration_noise=cfg.exploration_noise,
-        buffer_size=task.buffer_size,
-    )
+def _replay_agent(cls: type, **settings: Callable[[QDPGConfig, QDPGTask], Any]):
+    """A replay-buffer agent (TD3 and the off-policy baselines): the task's network,
+    TD3 settings, episodes and gradient steps per iteration and buffer size, and
+    ``settings``, each read from the config and the task."""
+
+    def build(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
+        return cls(
+            env=parts["env"],
+            network=parts["network"],
+            td3_config=parts["td3"],
+            num_episodes=task.num_actors,
+            num_critic_steps=task.num_critic_steps,
+            buffer_size=task.buffer_size,
+            **{name: value(cfg, task) for name, value in settings.items()},
+        )
+
+    return build
 
 
-def _sac(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
-    return SACAgent(
-        env=parts["env"],
-        network=parts["network"],
-        td3_config=parts["td3"],
-        num_episodes=task.num_actors,
-        num_critic_steps=task.num_critic_steps,
-        buffer_size=task.buffer_size,
-    )
-
-
-def _diayn(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
-    return DIAYN(
-        env=parts["env"],
-        network=parts["network"],
-        td3_config=parts["td3"],
-        num_episodes=task.num_actors,
-        num_critic_steps=task.num_critic_steps,
-        buffer_size=task.buffer_size,
-    )
-
-
-def _rnd(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
-    return RNDAgent(
-        env=parts["env"],
-        network=parts["network"],
-        td3_config=parts["td3"],
-        num_episodes=task.num_actors,
-        num_critic_steps=task.num_critic_steps,
-        exploration_noise=cfg.exploration_noise,
-        buffer_size=task.buffer_size,
-    )
-
-
-def _p3s_td3(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
-    # one learner per episode; the critic steps are shared among the learners
-    return P3STD3Agent(
-        env=parts["env"],
-        network=parts["network"],
-        td3_config=parts["td3"],
-        num_episodes=task.num_actors,
-        num_critic_steps=task.num_critic_steps,
-        exploration_noise=cfg.exploration_noise,
-        buffer_size=task.buffer_size,
-    )
-
-
-def _cem_rl(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
-    # episode 0 plays the mean actor (its performance), the others the CEM population
-    return CEMRLAgent(
-        env=parts["env"],
-        network=parts["network"],
-        td3_config=parts["td3"],
-        num_episodes=task.num_actors,
-        num_critic_steps=task.num_critic_steps,
-        num_actor_steps=task.num_pg_steps,
-        buffer_size=task.buffer_size,
-    )
+_exploration_noise = lambda cfg, task: cfg.exploration_noise  # noqa: E731
+_td3 = _replay_agent(TD3Agent, exploration_noise=_exploration_noise)
+_sac = _replay_agent(SACAgent)
+_diayn = _replay_agent(DIAYN)
+_rnd = _replay_agent(RNDAgent, exploration_noise=_exploration_noise)
+# one learner per episode; the critic steps are shared among the learners
+_p3s_td3 = _replay_agent(P3STD3Agent, exploration_noise=_exploration_noise)
+# episode 0 plays the mean actor (its performance), the others the CEM population
+_cem_rl = _replay_agent(CEMRLAgent, num_actor_steps=lambda cfg, task: task.num_pg_steps)
 
 
 def _agac(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
