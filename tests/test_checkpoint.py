@@ -85,6 +85,21 @@ def test_a_finished_loop_is_restored_without_running(tmp_path):
     assert_same(again, first) and calls == []
 
 
+def test_a_loop_that_stopped_early_resumes_stopped(tmp_path):
+    """A loop its stop rule ended saves its last checkpoint there; started again, it
+    replays the restored outputs through the rule and runs nothing more."""
+    stop = lambda outs: bool(np.asarray(outs["n"]).max() >= 3)
+    checkpoint.activate(policy(tmp_path))
+    first = scan_in_chunks(walk, START, 10, 2, "walk", progress=False, stop=stop)
+    assert first[1]["n"].tolist() == [0, 1, 2, 3]
+    checkpoint.activate(policy(tmp_path))
+    calls = []
+    again = scan_in_chunks(
+        walk, START, 10, 2, "walk", progress=False, on_chunk=calls.append, stop=stop
+    )
+    assert_same(again, first) and calls == []
+
+
 def test_a_checkpoint_cut_mid_write_is_skipped_for_the_previous_one(tmp_path, capsys):
     reference = scan_in_chunks(walk, START, 10, 2, progress=False)
     checkpoint.activate(policy(tmp_path))

@@ -99,6 +99,23 @@ def test_a_remainder_chunk_gives_the_same_numbers_as_one_scan():
     np.testing.assert_array_equal(carry, whole)
 
 
+def test_a_stop_rule_ends_the_loop_after_the_chunk_where_it_holds():
+    step = lambda c: (c + 1, c)
+    seen = []
+
+    def stop(outs):  # sees each chunk's outputs in order
+        seen.append(np.asarray(outs).tolist())
+        return bool(np.any(np.asarray(outs) >= 4))
+
+    carry, outs = scan_in_chunks(step, jnp.int32(0), 20, 3, progress=False, stop=stop)
+    assert seen == [[0, 1, 2], [3, 4, 5]]  # 4 is in the second chunk: the loop stops there
+    np.testing.assert_array_equal(outs, np.arange(6))
+    assert int(carry) == 6
+    never = lambda outs: False
+    carry, outs = scan_in_chunks(step, jnp.int32(0), 7, 3, progress=False, stop=never)
+    assert outs.shape == (7,) and int(carry) == 7  # the whole budget, the last chunk masked
+
+
 def test_map_concurrently_keeps_names_order_and_results_and_raises():
     from qdnb.core.loops import map_concurrently
 

@@ -25,8 +25,10 @@ def scan_in_chunks(
     progress: bool = True,
     chunk_seconds: list[float] | None = None,
     on_chunk: Callable[[int], None] | None = None,
+    stop: Callable[[Any], bool] | None = None,
 ) -> tuple[Any, Any]:
-    """Apply ``carry, out = step(carry)`` ``num_steps`` times.
+    """Apply ``carry, out = step(carry)`` ``num_steps`` times, or fewer when ``stop``
+    says so.
 
     Each chunk of ``chunk_size`` steps is one jitted ``lax.scan`` (compiled once);
     the host only wakes up between chunks to move the progress bar.  When
@@ -36,13 +38,17 @@ def scan_in_chunks(
     final carry and the per-step outputs stacked along a leading axis.  When
     ``chunk_seconds`` is a list, the wall time of each chunk (the first one
     includes compilation) is appended to it; ``on_chunk(steps_done)`` is called
-    after each chunk (and its checkpoint).
+    after each chunk (and its checkpoint).  ``stop(chunk_outputs)`` is called with each
+    chunk's outputs (stacked as returned) in order, and a true answer ends the loop
+    after that chunk: the outputs then stop there (an early stop, such as a goal
+    reached; ``stop`` may keep state across calls).
 
     Under an active ``checkpoint.CheckpointPolicy`` a loop with a ``desc`` saves its
     carry and outputs so far (every ``every_chunks`` chunks, every
     ``every_seconds`` and at the end) and, started again, resumes from its latest
     checkpoint, its progress bar starting there; the results equal an
-    uninterrupted run's bit for bit.
+    uninterrupted run's bit for bit.  A loop that stopped early saves its last
+    checkpoint there, and a resumed one replays its restored outputs through ``stop``.
     """
     if num_steps < 1 or chunk_size < 1:
         raise ValueError(
@@ -99,11 +105,12 @@ def scan_in_chunks(
             done, state, _ = restored
             carry, outputs = state["carry"], [state["outputs"]]
             checkpoint.log(f"{saver.name!r} resumed at step {done} of {num_steps}")
+    stopped = bool(outputs) and stop is not None and bool(stop(outputs[0]))
     chunks = 0
     with tqdm(
         total=num_steps, initial=done, desc=desc, disable=not progress, mininterval=1.0
     ) as bar:
-        while done < num_steps:
+        while done < num_steps and not stopped:
             n = min(chunk_size, num_steps - done)
             start = time.perf_counter()
             carry, out = run(n, carry)
@@ -114,7 +121,8 @@ def scan_in_chunks(
             done += n
             chunks += 1
             bar.update(n)
-            if saver is not None and saver.due(chunks, last=done == num_steps):
+            stopped = stop is not None and bool(stop(out))
+            if saver is not None and saver.due(chunks, last=done == num_steps or stopped):
                 so_far = jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
                 outputs = [so_far]
                 saver.save(done, {"carry": carry, "outputs": so_far})

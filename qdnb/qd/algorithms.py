@@ -240,6 +240,7 @@ def run_seeds(
     keep_evaluations: bool = True,
     chunk_seconds: list[float] | None = None,
     on_chunk: Callable[[int], None] | None = None,
+    stop: Callable[[dict[str, Any]], bool] | None = None,
 ):
     """Run one algorithm for several seeds at once (``vmap`` over ``keys``).
 
@@ -248,7 +249,9 @@ def run_seeds(
     cells over the environment's descriptor bounds (see ``ExplorationTrack``),
     with the smallest distance to ``target``; ``keep_evaluations`` keeps the
     descriptors and fitnesses of every evaluated solution (``chunk_seconds``,
-    ``on_chunk`` and checkpoints under ``desc``: see ``scan_in_chunks``).  ``env_steps`` counts
+    ``on_chunk``, ``stop`` and checkpoints under ``desc``: see ``scan_in_chunks``; ``stop``
+    sees each chunk's history entries shaped ``(iterations, num_seeds, ...)``, and a loop
+    it stops returns a shorter history).  ``env_steps`` counts
     the environment steps taken in each iteration.  Returns the final
     states, the tracks (``None`` without ``track_bins``) and a history dict whose
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
@@ -287,6 +290,7 @@ def run_seeds(
             progress=progress,
             chunk_seconds=chunk_seconds,
             on_chunk=on_chunk,
+            stop=stop,
         )
         return states, tracks, jax.tree.map(lambda h: jnp.swapaxes(h, 0, 1), history)
 
@@ -296,6 +300,8 @@ def run_seeds(
         return (state, track), out
 
     carry, first = jax.jit(jax.vmap(init))(keys)
+    if stop is not None and stop(jax.tree.map(lambda f: f[None], first)):
+        stop = lambda _: True  # the initial batch already met it: stop after one chunk
     (states, tracks), history = scan_in_chunks(
         jax.vmap(step),
         carry,
@@ -305,6 +311,7 @@ def run_seeds(
         progress=progress,
         chunk_seconds=chunk_seconds,
         on_chunk=on_chunk,
+        stop=stop,
     )
     history = jax.tree.map(
         lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history
