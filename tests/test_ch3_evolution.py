@@ -10,7 +10,7 @@ import pytest
 from qdnb.book.registry import config
 from qdnb.chapters import ch3_evolution
 from qdnb.chapters.ch3_evolution import ENVIRONMENTS, EVOLUTION, Result
-from qdnb.chapters.ch3_qdpg import EnvironmentResult, MethodResult, build_algorithms
+from qdnb.chapters.ch3_qdpg import EnvironmentResult, MethodResult, build_algorithms, until_goal
 
 
 def method(exit_steps, perf=-100.0):
@@ -47,6 +47,21 @@ def hand_made(qdpg, es):
 def test_steps_to_the_exit_zone_are_read_from_the_history():
     r = method([200.0, None])
     np.testing.assert_array_equal(ch3_evolution.steps_to_goal("pointmaze", r), [200.0, np.inf])
+
+
+def test_a_method_stops_once_every_seed_has_reached_the_goal():
+    # Point-Maze: chunks of history shaped iterations x seeds x episodes x 2
+    stop = until_goal("pointmaze", 2)
+    start, exit_ = np.zeros((2, 2, 3, 2)), np.zeros((2, 2, 3, 2))
+    exit_[1, 0, 2] = (-0.5, 0.8)  # seed 0 reaches the exit in the chunk's second iteration
+    assert not stop({"descriptors": start}) and not stop({"descriptors": exit_})
+    exit_[:] = 0.0
+    exit_[0, 1, 0] = (-0.5, 0.8)  # seed 1 later: every seed has now reached it
+    assert stop({"descriptors": exit_})
+    # Ant-Maze: a best reward above -10 (Table 3.3), here iterations x seeds
+    stop = until_goal("antmaze", 2)
+    assert not stop({"max_fitness": np.array([[-30.0, -9.0], [-12.0, -20.0]])})
+    assert stop({"max_fitness": np.array([[-9.5, -40.0]])})
 
 
 def test_qdpg_must_be_ten_times_faster_than_the_fastest_es_on_the_mean_and_most_seeds():

@@ -7,8 +7,10 @@ QD-PG, on the QD-PG page's environments, episode lengths and policy networks; a
 generation plays ``num_perturbations`` perturbed policies (plus the centre, or the
 meta-population's centres, or ME-ES's last offspring, in the same batch), so a
 method's budget is ``num_steps`` environment steps spread over
-``num_steps // (num_perturbations * episode_length)`` generations.  Steps to the
-goal are read from every evaluated episode: on Point-Maze the first environment step
+``num_steps // (num_perturbations * episode_length)`` generations, and a method
+runs until every one of its seeds has reached the goal or the budget is spent
+(checked every ``chunk_size`` generations: ``run_environment``'s ``stop_at_goal``).
+Steps to the goal are read from every evaluated episode: on Point-Maze the first environment step
 at which an episode ended in the exit zone, on Ant-Maze the first at which the best
 reward exceeded -10 (Table 3.3).  QD-PG's own result is the QD-PG page's run at the
 same scale (``load_or_recompute_qdpg``).
@@ -137,6 +139,7 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
             jax.random.fold_in(jax.random.PRNGKey(seed), i),  # i: the QD-PG page's order
             progress,
             methods=cfg.methods(env_name),
+            stop_at_goal=True,
         )
         for i, env_name in enumerate(("pointmaze", "antmaze"))
     }
@@ -242,7 +245,7 @@ SCALES = {
         num_perturbations=1000,
         pointmaze_steps=100_000_000,
         ant_perturbations=100,
-        antmaze_steps=500_000,
+        antmaze_steps=1_000_000,
         ant_methods=("ME-ES",),
         ant_seeds=1,
     ),

@@ -322,16 +322,21 @@ def _agac(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
 
 def _evolution_strategy(cls: type) -> Callable[[QDPGConfig, QDPGTask, dict], Algorithm]:
     """An ES method whose generation is ``task.num_actors`` perturbations (the chapter's
-    evolution page sets it), with its archive as long as the run (the reference codes
-    keep every centre's descriptor) and, for ME-ES, the task's grid."""
+    evolution page sets it), with its archive exactly as long as the run's descriptors
+    (the reference codes keep them all: ME-ES one per generation, QDax's archive of
+    ``total_generations``; NS-ES the meta-population's first ``M``, then one per
+    generation) and, for ME-ES, the task's grid."""
 
     def build(cfg: QDPGConfig, task: QDPGTask, parts: dict) -> Algorithm:
         extra = {"centroids": parts["shared"]["centroids"]} if cls is MEES else {}
+        entries = task.num_iterations
+        if issubclass(cls, NSRES):
+            entries += NSRES.meta_population_size - 1
         return cls(
             env=parts["env"],
             network=parts["network"],
             num_perturbations=task.num_actors,
-            archive_size=max(1000, task.num_iterations + 1),
+            archive_size=max(cls.k, entries),
             **extra,
         )
 
@@ -472,10 +477,13 @@ def run_environment(
     key: jax.Array,
     progress: bool = True,
     methods: tuple[str, ...] | None = None,
+    stop_at_goal: bool = False,
 ) -> EnvironmentResult:
     """Run every method of ``cfg`` (or those of ``methods``, any of ``METHODS``) on
     ``env_name``, each on ``cfg.seeds(env_name, method)`` seeds; ``history`` arrays
-    have shape ``(num_seeds, num_iterations + 1, ...)``."""
+    have shape ``(num_seeds, num_iterations + 1, ...)``, or fewer iterations with
+    ``stop_at_goal``: a method then stops after the chunk in which its last seed
+    reached the goal (``until_goal``)."""
     task = cfg.task(env_name)
     env = make_task_env(cfg, env_name)
     algorithms = build_algorithms(cfg, env_name, env, methods)
@@ -491,6 +499,7 @@ def run_environment(
             progress=progress,
             desc=f"{env_name} {method}",
             chunk_seconds=chunks,
+            stop=until_goal(env_name, len(keys)) if stop_at_goal else None,
         )
         history = jax.device_get(history)
         seconds = time.perf_counter() - start
@@ -513,6 +522,24 @@ def run_environment(
             ),
         )
     return EnvironmentResult(env, env_name, results)
+
+
+def until_goal(env_name: str, num_seeds: int) -> Callable[[dict[str, Any]], bool]:
+    """A ``run_seeds`` stop rule: true once every one of ``num_seeds`` seeds has reached
+    the goal in the history seen so far (Point-Maze: an evaluated episode ended in the
+    exit zone; Ant-Maze: the best reward exceeded ``ANTMAZE_SOLVED``), as
+    ``steps_to_exit`` and ``MethodResult.steps_to_goal`` read it afterwards."""
+    reached = np.zeros(num_seeds, bool)
+
+    def stop(history: dict[str, Any]) -> bool:  # entries: iterations x seeds x ...
+        if env_name == "pointmaze":
+            hit = in_exit_zone(np.asarray(history["descriptors"]))
+            reached[:] |= hit.reshape(hit.shape[0], num_seeds, -1).any(axis=(0, 2))
+        else:
+            reached[:] |= np.asarray(history["max_fitness"] > ANTMAZE_SOLVED).any(axis=0)
+        return bool(reached.all())
+
+    return stop
 
 
 def steady_rate(chunk_seconds: list[float], chunk_size: int, fallback: float) -> float:
