@@ -124,10 +124,11 @@ Simplified (and why):
   have both; Point-Maze's observations are positions in [-1, 1]^2).
 - Archives are fixed-capacity FIFOs (``archive_size``, default 1000); the
   references grow them for the whole run (QDax sizes it to the number of
-  generations): choose ``archive_size`` at least the number of generations to
-  match them (the book's budgets run far fewer than 1000 generations).  Novelty
-  costs grow with the capacity: scoring 1000 perturbations against 1000
-  entries takes about 2.5 ms on CPU, against 10,000 about 22 ms.
+  generations): an ``archive_size`` of at least the run's descriptor count
+  matches them (the chapter's registry, ``ch3_qdpg.METHODS``, sizes it so).
+  Novelty costs grow with the capacity: scoring 1000 perturbations against 1000
+  entries takes about 3.5 ms on CPU (most of it ``top_k``), against 10,000
+  about 22 ms.
 - Parents among "the top k cells" are the ``k`` cells ``lax.top_k`` returns
   (QDax takes every cell scoring at least the k-th score, ties included), and
   an empty last-updated buffer or an empty grid falls back to the grid or to
@@ -359,26 +360,37 @@ class _EvolutionStrategy:
         params = self.network.init(key, jnp.zeros((self.env.observation_size,)))
         return ravel_pytree(params)[0]
 
-    def evaluate(self, flat_batch: jax.Array, key: jax.Array) -> Evaluation:
-        """One episode for each row of ``flat_batch``, all in one vmapped batch.
-
-        The parameters are materialised before the rollout (an optimisation
-        barrier): left to itself, XLA may fuse ``theta + sigma eps`` and the
-        unflattening into the rollout's loop and redo them at every time step.
-        """
-        params = jax.lax.optimization_barrier(jax.vmap(self._unravel)(flat_batch))
-        return evaluate_policies(self.env, self.network.apply, params, key)
-
-    def perturb(
-        self, key: jax.Array, table: jax.Array, theta: jax.Array
-    ) -> tuple[jax.Array, jax.Array]:
-        """The first half ``eps_1..eps_{n/2}`` of the antithetic perturbations (read
-        from the noise table, or drawn afresh without one) and the perturbed
-        parameters ``theta + sigma eps_i``, the pairs' ``+`` then ``-`` halves
-        (``(n, d)``)."""
+    def noise(self, key: jax.Array, table: jax.Array, dim: int) -> jax.Array:
+        """The first half ``eps_1..eps_{n/2}`` of this generation's antithetic
+        perturbations of R^dim (``(n / 2, dim)``): windows of the noise table, or
+        fresh draws without one."""
         table = None if self.noise_table_size is None else table
-        half = mirrored_half(key, self.num_perturbations, theta.shape[0], table)
-        return half, jnp.concatenate([theta + self.sigma * half, theta - self.sigma * half])
+        return mirrored_half(key, self.num_perturbations, dim, table)
+
+    def evaluate(
+        self, centres: jax.Array, theta: jax.Array, half: jax.Array, key: jax.Array
+    ) -> Evaluation:
+        """One episode for each of the flat parameter vectors ``centres`` (``(c, d)``),
+        then for each perturbed policy ``theta + sigma eps_i`` of the pairs' ``+`` half
+        and ``theta - sigma eps_i`` of their ``-`` half (``n`` episodes), all in one
+        vmapped batch of ``c + n`` episodes.
+
+        The perturbed parameters are built leaf by leaf from the unflattened
+        ``theta`` and ``half`` (one write of the batch's parameters, where
+        perturbing the flat vectors and then unflattening them writes it twice), and
+        materialised before the rollout (an optimisation barrier): left to itself,
+        XLA may fuse ``theta + sigma eps`` into the rollout's loop and redo it at
+        every time step.
+        """
+        unravel = jax.vmap(self._unravel)
+        params = jax.tree.map(
+            lambda c, t, e: jnp.concatenate([c, t + self.sigma * e, t - self.sigma * e]),
+            unravel(centres),
+            self._unravel(theta),
+            unravel(half),
+        )
+        params = jax.lax.optimization_barrier(params)
+        return evaluate_policies(self.env, self.network.apply, params, key)
 
     def ascend(
         self, theta: jax.Array, opt_state: Any, half: jax.Array, shaped_scores: jax.Array
@@ -427,8 +439,8 @@ class OpenAIES(_EvolutionStrategy):
 
     def step(self, state: ESState) -> tuple[ESState, Evaluation]:
         key, k_noise, k_eval = jax.random.split(state.key, 3)
-        half, perturbed = self.perturb(k_noise, state.noise_table, state.theta)
-        ev = self.evaluate(jnp.concatenate([state.theta[None], perturbed]), k_eval)
+        half = self.noise(k_noise, state.noise_table, state.theta.shape[0])
+        ev = self.evaluate(state.theta[None], state.theta, half, k_eval)
         theta, opt_state = self.ascend(
             state.theta, state.opt_state, half, centred_ranks(ev.fitness[1:])
         )
@@ -524,8 +536,8 @@ class NSRES(_EvolutionStrategy):
         novelty = state.archive.novelty(state.descriptors, self.k)
         m = jax.random.choice(k_select, m_size, p=_novelty_probabilities(novelty))
         theta = state.thetas[m]
-        half, perturbed = self.perturb(k_noise, state.noise_table, theta)
-        ev = self.evaluate(jnp.concatenate([state.thetas, perturbed]), k_eval)
+        half = self.noise(k_noise, state.noise_table, theta.shape[0])
+        ev = self.evaluate(state.thetas, theta, half, k_eval)
         fit_c, desc_c = ev.fitness[:m_size], ev.descriptor[:m_size]
         archive = state.archive.add(desc_c, -jnp.inf, self.k, valid=state.unarchived)
         weight, best, count = state.reward_weight, state.best_fitness, state.stagnation_count
@@ -694,11 +706,17 @@ class MEES(_EvolutionStrategy):
         new_parent, explore = mees_schedule(
             state.generation, self.num_optimizer_steps, self.use_explore, self.use_exploit
         )
-        sampled, found = self.sample_parent(state, k_parent, explore)
+        # a new parent every num_optimizer_steps generations (a cond: the grid's
+        # novelty is computed only then, unless vmapped, where a cond computes both)
+        sampled, found = jax.lax.cond(
+            new_parent,
+            lambda: self.sample_parent(state, k_parent, explore),
+            lambda: (state.offspring, jnp.asarray(False)),
+        )
         parent = jnp.where(new_parent & found, sampled, state.offspring)
         opt_state = _where_tree(new_parent, self.optimizer.init(parent), state.opt_state)
-        half, perturbed = self.perturb(k_noise, state.noise_table, parent)
-        ev = self.evaluate(jnp.concatenate([state.offspring[None], perturbed]), k_eval)
+        half = self.noise(k_noise, state.noise_table, parent.shape[0])
+        ev = self.evaluate(state.offspring[None], parent, half, k_eval)
 
         # the previous offspring: into the grid, the last-updated buffer and the archive
         repertoire, inserted = rep_lib.insert(
@@ -711,7 +729,11 @@ class MEES(_EvolutionStrategy):
         archive = state.archive.add(ev.descriptor[:1], -jnp.inf, self.k)
 
         # the ES step on novelty (explore) or fitness (exploit)
-        scores = jnp.where(explore, archive.novelty(ev.descriptor[1:], self.k), ev.fitness[1:])
+        scores = jax.lax.cond(
+            explore,
+            lambda: archive.novelty(ev.descriptor[1:], self.k),
+            lambda: ev.fitness[1:],
+        )
         offspring, opt_state = self.ascend(parent, opt_state, half, centred_ranks(scores))
         new_state = state.replace(
             repertoire=repertoire,
