@@ -23,7 +23,8 @@ def probe(tmp_path):
     procs = {}
     for n in (1, 4):
         env = dict(os.environ, JAX_PLATFORMS="cpu")
-        env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={n}"
+        flags = [os.environ.get("XLA_FLAGS", ""), f"--xla_force_host_platform_device_count={n}"]
+        env["XLA_FLAGS"] = " ".join(filter(None, flags))  # conftest's optimisation level kept
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         out = tmp_path / f"{n}.npz"
         cmd = [sys.executable, str(ROOT / "bench" / "devices_probe.py"), str(out)]
