@@ -25,7 +25,8 @@ book: venv
 	$(BIN)/python -m qdnb book --scale $(SCALE) --seed $(SEED)
 
 ## The linter, then every notebook at tiny scale and the unit tests, on two workers
-## (pytest-xdist): the notebooks run in order on one, the unit test files share the other;
+## (pytest-xdist, a test file per worker at a time): the notebooks in three groups, each in
+## order on one worker (tests/notebook_runs.py), the unit test files filling in behind them;
 ## the primer also runs in place from a fresh kernel, as a reader runs it (nbmake: no
 ## papermill, no runner).
 test: venv lint

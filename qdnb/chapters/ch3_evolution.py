@@ -131,7 +131,7 @@ class Result:
 def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> Result:
     """QD-PG's results (read or recomputed), then every ES method on each environment
     with the QD-PG page's key for that environment."""
-    qdpg, status = load_or_recompute_qdpg(cfg.tasks, scale, seed, progress)
+    qdpg, status = load_or_recompute_qdpg(cfg.tasks, scale, seed, progress, ENVIRONMENTS)
     evolution = {
         env_name: run_environment(
             cfg.es_tasks(env_name),
@@ -143,9 +143,7 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
         )
         for i, env_name in enumerate(("pointmaze", "antmaze"))
     }
-    return Result(
-        {e: qdpg[e] for e in ENVIRONMENTS}, {e: status[e] for e in ENVIRONMENTS}, evolution
-    )
+    return Result(qdpg, status, evolution)
 
 
 def mean_steps(steps: np.ndarray) -> float:

@@ -856,17 +856,28 @@ def save_qdpg_results(
 
 
 def load_or_recompute_qdpg(
-    cfg: QDPGConfig, scale: str, seed: int, progress: bool = True
+    cfg: QDPGConfig,
+    scale: str,
+    seed: int,
+    progress: bool = True,
+    environments: tuple[str, ...] = ENVIRONMENTS,
 ) -> tuple[dict[str, MethodResult], dict[str, str]]:
-    """QD-PG's result on each environment, read from this scale's ``ch3_qdpg`` run, or
-    recomputed (and saved there) with that notebook's keys, so it is the same result:
-    ``results[env]`` and ``status[env]`` (``"loaded"``, or why it was recomputed)."""
+    """QD-PG's result on each of ``environments``, read from this scale's ``ch3_qdpg``
+    run, or recomputed (and saved there) with that notebook's keys, so it is the same
+    result: ``results[env]`` and ``status[env]`` (``"loaded"``, or why it was
+    recomputed)."""
+    unknown = set(environments) - set(ENVIRONMENTS)
+    if unknown:
+        raise ValueError(
+            f"unknown environments {sorted(unknown)}; valid: {', '.join(ENVIRONMENTS)}"
+        )
     digest = config_hash(cfg)
     summary = load_summary(scale, "ch3_qdpg")
     seed_differs = summary is not None and summary.get("seed") != seed
     results: dict[str, MethodResult] = {}
     status: dict[str, str] = {}
-    for i, env_name in enumerate(ENVIRONMENTS):
+    for env_name in environments:
+        i = ENVIRONMENTS.index(env_name)  # the QD-PG page's order gives its key
         path = qdpg_path(scale, env_name)
         loaded = None if seed_differs else load_method_result(path, digest)
         if loaded is not None:
