@@ -168,7 +168,8 @@ def centred_ranks(x: jax.Array) -> jax.Array:
     n = x.shape[0]
     if n < 2:
         raise ValueError(f"centred ranks need at least 2 values, got {n}")
-    ranks = jnp.argsort(jnp.argsort(x))
+    order = jnp.argsort(x)  # stable: ties in index order
+    ranks = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))  # one sort
     return ranks.astype(jnp.float32) / (n - 1) - 0.5
 
 
