@@ -9,9 +9,11 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # test_sharding 100 -> 59 s) and run-heavy ones slower (test_qdt 74 -> 122 s, test_flt
 # 28 -> 63 s), all tests passing either way.  Set an optimisation level in XLA_FLAGS to
 # override.
+from qdnb.book.runner import KERNEL_XLA_FLAGS  # noqa: E402 (after JAX_PLATFORMS is set)
+
 if "optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = " ".join(
-        filter(None, [os.environ.get("XLA_FLAGS"), "--xla_backend_optimization_level=0"])
+        filter(None, [os.environ.get("XLA_FLAGS"), KERNEL_XLA_FLAGS["tiny"]])
     )
 
 

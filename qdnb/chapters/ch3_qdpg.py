@@ -532,14 +532,21 @@ def until_goal(env_name: str, num_seeds: int) -> Callable[[dict[str, Any]], bool
     reached = np.zeros(num_seeds, bool)
 
     def stop(history: dict[str, Any]) -> bool:  # entries: iterations x seeds x ...
-        if env_name == "pointmaze":
-            hit = in_exit_zone(np.asarray(history["descriptors"]))
-            reached[:] |= hit.reshape(hit.shape[0], num_seeds, -1).any(axis=(0, 2))
-        else:
-            reached[:] |= np.asarray(history["max_fitness"] > ANTMAZE_SOLVED).any(axis=0)
+        reached[:] |= goal_hits(env_name, history).any(axis=0)
         return bool(reached.all())
 
     return stop
+
+
+def goal_hits(env_name: str, history: dict[str, Any]) -> np.ndarray:
+    """Whether the goal was reached, per entry of a history's first two axes (seeds x
+    iterations in a result, iterations x seeds inside a loop): on Point-Maze an
+    evaluated episode ended in the exit zone, on Ant-Maze the best reward exceeded
+    ``ANTMAZE_SOLVED`` (Table 3.3)."""
+    if env_name == "pointmaze":
+        hit = in_exit_zone(np.asarray(history["descriptors"]))
+        return hit.reshape(hit.shape[0], hit.shape[1], -1).any(axis=2)
+    return np.asarray(history["max_fitness"]) > ANTMAZE_SOLVED
 
 
 def steady_rate(chunk_seconds: list[float], chunk_size: int, fallback: float) -> float:
@@ -578,8 +585,7 @@ def steps_to_exit(result: MethodResult) -> np.ndarray:
     """Per seed, the environment steps a Point-Maze method had used when one of
     its evaluated episodes first ended in the exit zone (``nan`` if none did);
     ``result`` is one method's entry of ``run_environment``."""
-    hit = in_exit_zone(result.history["descriptors"])  # seeds x iterations x episodes
-    hit = hit.reshape(hit.shape[0], hit.shape[1], -1).any(axis=2)
+    hit = goal_hits("pointmaze", result.history)  # seeds x iterations
     steps = np.asarray(result.cumulative_steps, float)
     return np.where(hit.any(axis=1), steps[np.arange(len(steps)), np.argmax(hit, axis=1)], np.nan)
 
