@@ -180,7 +180,7 @@ def test_mees_parent_choice_explore_and_exploit():
         **SMALL,
     )
     d = algo.num_parameters
-    state = algo.fresh(jax.random.key(0))
+    state = algo.start(jax.random.key(0))
     genotypes = jnp.arange(1.0, 4.0)[:, None] * jnp.ones((3, d))  # rows of 1s, 2s, 3s
     descriptors = jnp.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5]])  # cells 0, 1, 2
     repertoire, _ = rep_lib.insert(

@@ -18,7 +18,8 @@ Chapter 4, on MAP-Elites' selection and iso+line variation:
 
 Each has ``init(key) -> (state, evaluation)`` and ``step(state) -> (state,
 evaluation)``, pure functions ready for ``jit``, ``vmap`` over seeds and
-``lax.scan``.  The MAP-Elites family also has ``start(key) -> state``: an empty
+``lax.scan``.  The MAP-Elites family (and the evolution strategies of
+``qdnb.qd.es``) also has ``start(key) -> state``: an empty
 archive and the random first batch waiting in the state, so that its first
 ``step`` is the initial evaluation and the whole run (``run_seeds``) is one
 compiled program: each step evaluates the waiting batch, inserts it, updates

@@ -100,8 +100,10 @@ order).  Episodes per step (``episodes_per_step``):
 - ``MEES``: ``num_perturbations + 1`` (the previous offspring, then the
   perturbations of this generation's parent).
 
-``init(key)`` is the first ``step`` from a fresh state (random centres, empty
-archives), so it plays the same batch as every step.
+``start(key)`` is the state before any episode (random centres, empty archives),
+and ``init(key)`` is ``step(start(key))``, so the first generation plays the same
+batch as every step; ``run_seeds`` then compiles the whole run, first generation
+included, as one program (``qdnb.qd.algorithms``).
 
 Followed: antithetic sampling, centred ranks, the 1/(n sigma) estimator, Adam,
 L2 decay on theta (ES-1..4), the noise table; NS-1..3 with one global ``w``
@@ -401,8 +403,8 @@ class _EvolutionStrategy:
         return es_update(self.optimizer, theta, opt_state, gradient, self.weight_decay)
 
     def init(self, key: jax.Array) -> tuple[Any, Evaluation]:
-        """The first generation: ``step`` from a fresh state (``fresh``)."""
-        return self.step(self.fresh(key))
+        """The first generation: ``step(start(key))``."""
+        return self.step(self.start(key))
 
 
 # ---------------------------------------------------------------------------
@@ -432,7 +434,7 @@ class OpenAIES(_EvolutionStrategy):
     def episodes_per_step(self) -> int:
         return self.num_perturbations + 1
 
-    def fresh(self, key: jax.Array) -> ESState:
+    def start(self, key: jax.Array) -> ESState:
         k_init, k_table, key = jax.random.split(key, 3)
         theta = self.random_centre(k_init)
         table = self.noise_table(k_table)
@@ -512,7 +514,7 @@ class NSRES(_EvolutionStrategy):
     def episodes_per_step(self) -> int:
         return self.num_perturbations + self.meta_population_size
 
-    def fresh(self, key: jax.Array) -> NSESState:
+    def start(self, key: jax.Array) -> NSESState:
         k_init, k_table, key = jax.random.split(key, 3)
         m = self.meta_population_size
         thetas = jax.vmap(self.random_centre)(jax.random.split(k_init, m))
@@ -666,7 +668,7 @@ class MEES(_EvolutionStrategy):
     def episodes_per_step(self) -> int:
         return self.num_perturbations + 1
 
-    def fresh(self, key: jax.Array) -> MEESState:
+    def start(self, key: jax.Array) -> MEESState:
         k_init, k_table, key = jax.random.split(key, 3)
         theta = self.random_centre(k_init)
         size = self.last_updated_size
