@@ -10,3 +10,9 @@ Layers, each importing only from itself and those below it (``tests/test_layers.
 """
 
 __version__ = "0.1.0"
+
+# One XLA host device per core on CPU, asked for before JAX starts its backends
+# (``qdnb.core.sharding.configure_host_devices``; ``QDNB_DEVICES=1`` turns it off).
+from qdnb.core.sharding import configure_host_devices as _configure_host_devices  # noqa: E402
+
+_configure_host_devices()

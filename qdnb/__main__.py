@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from qdnb.book import publish, runner
@@ -38,6 +39,22 @@ def add_checkpoint_flags(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="deterministic GPU kernels (--xla_gpu_deterministic_ops=true): slower",
     )
+    parser.add_argument(
+        "--devices",
+        metavar="N",
+        default=None,
+        help="XLA host devices the notebooks' CPU runs use (QDNB_DEVICES; default: one per "
+        "core; 1 runs everything on one device); GPUs and TPUs are not affected",
+    )
+
+
+def set_devices(value: str | None) -> None:
+    """``--devices``: checked here (a clear error before any notebook starts), then
+    handed to the kernels as ``QDNB_DEVICES``."""
+    if value is not None:
+        from qdnb.core.sharding import requested_devices
+
+        os.environ["QDNB_DEVICES"] = str(requested_devices(value))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             print("scales:   ", " ".join(SCALES))
         elif args.command == "run":
             runner.check_notebooks(args.notebooks)
+            set_devices(args.devices)
             executed = runner.run_notebooks(
                 args.notebooks,
                 args.scale,
@@ -83,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             for path in executed:
                 print(f"executed: {path}")
         elif args.command == "book":
+            set_devices(args.devices)
             index = runner.build_book(
                 args.scale,
                 args.seed,

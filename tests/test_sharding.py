@@ -1,8 +1,21 @@
-"""Every local device: a MAP-Elites loop, a PGA-ME loop and a QDT training step on 1
-and on 4 devices (CPU devices forced by ``XLA_FLAGS``, each count in its own process)
-agree: the loops bit for bit (each policy's episode is computed as on one device),
-the QDT's loss and gradients to float32 rounding (XLA sums the four devices' shares
-of the gradient in another order).  One device leaves the program as it was."""
+"""Every local device: a loop of each kind (``bench/devices_probe.py``: the GA, Novelty Search,
+MAP-Elites and PGA-ME on Point-Maze, a Brax MAP-Elites loop, QD-PG, ME-ES, the FLT's and the
+QDT's training steps) on 1 device and, twice, on 2 (CPU devices forced by ``XLA_FLAGS``,
+each run in its own process).
+
+- Same seed, same numbers at a device count: the two 2-device runs agree bit for bit.
+- Across counts, bit for bit where each device computes its share as one device computes
+  it: the primer's loops and PGA-ME (the seeds split), the Brax loop at `tiny` (its
+  population split; at `small`, with three seeds, ME-LS's is not: bench/scale_out.py).
+- Across counts, to a stated tolerance where the program differs: the QDT's loss and
+  gradients (a split sum); QD-PG and ME-ES, whose seeds split over the devices run a
+  one-seed program per device (QD-PG's three seeds padded to four): their initial batch
+  is identical, later iterations follow a slightly different rounding that RL and ES
+  amplify (the book says which counts give identical numbers).
+- The FLT trains on Flow Lenia episodes simulated in its training program: a batch split
+  over the devices rounds differently from step 1 (3.6e-7 at `tiny`) and the dynamics
+  amplify it to order one by step 50, so only the first step is compared.
+"""
 
 import os
 import subprocess
@@ -18,42 +31,62 @@ from qdnb.core.paths import ROOT
 LEARNING_RATE = 1e-3  # the probe's QDT step
 
 
-def probe(tmp_path):
-    """Run ``bench/devices_probe.py`` on 1 and on 4 devices at once; their results."""
-    procs = {}
-    for n in (1, 4):
+def probe(tmp_path, counts=(1, 2, 2)):
+    """Run ``bench/devices_probe.py`` at each device count of ``counts``, side by side."""
+    procs = []
+    for i, n in enumerate(counts):
         env = dict(os.environ, JAX_PLATFORMS="cpu")
-        flags = [os.environ.get("XLA_FLAGS", ""), f"--xla_force_host_platform_device_count={n}"]
-        env["XLA_FLAGS"] = " ".join(filter(None, flags))  # conftest's optimisation level kept
+        env["XLA_FLAGS"] = sharding.with_device_count(env.get("XLA_FLAGS", ""), n)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        out = tmp_path / f"{n}.npz"
+        out = tmp_path / f"{i}-{n}.npz"
         cmd = [sys.executable, str(ROOT / "bench" / "devices_probe.py"), str(out)]
-        procs[n] = (subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True), out)
-    results = {}
-    for n, (proc, out) in procs.items():
-        _, err = proc.communicate(timeout=900)
+        procs.append((subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True), out))
+    results = []
+    for proc, out in procs:
+        _, err = proc.communicate(timeout=1200)
         assert proc.returncode == 0, err[-2000:]
-        results[n] = dict(np.load(out))
-    return results[1], results[4]
+        results.append(dict(np.load(out)))
+    return results
 
 
-def test_one_and_four_devices_agree(tmp_path):
-    one, four = probe(tmp_path)
-    assert int(one.pop("devices")) == 1 and int(four.pop("devices")) == 4
-    assert one.keys() == four.keys()
+def test_same_numbers_at_a_device_count_and_across_counts(tmp_path):
+    one, two, again = probe(tmp_path)
+    assert [int(r.pop("devices")) for r in (one, two, again)] == [1, 2, 2]
+    assert one.keys() == two.keys() == again.keys()
+    for key in two:  # the same seed on the same machine: the same numbers
+        np.testing.assert_array_equal(two[key], again[key], err_msg=key)
     for key in one:
-        if key.startswith(("ME/", "PGA-ME/")):  # the same computation per policy
-            np.testing.assert_array_equal(one[key], four[key], err_msg=key)
-        elif key.startswith(("QDT/loss", "QDT/step_loss", "QDT/grad")):  # a sharded reduction
-            np.testing.assert_allclose(one[key], four[key], rtol=1e-4, atol=1e-7, err_msg=key)
+        if key.startswith(
+            ("GA/", "NS/", "ME/", "PGA-ME/", "ME-brax/")
+        ):  # the same computation per policy
+            np.testing.assert_array_equal(one[key], two[key], err_msg=key)
+        elif key.startswith(("QD-PG/", "QD-PG-3-seeds/", "ME-ES/")):  # first batch the same
+            np.testing.assert_array_equal(one[key][:, 0], two[key][:, 0], err_msg=key)
+            np.testing.assert_allclose(one[key], two[key], rtol=0.05, atol=0.05, err_msg=key)
+        elif key.startswith(("QDT/loss", "QDT/step_loss", "QDT/grad")):  # a split sum
+            np.testing.assert_allclose(one[key], two[key], rtol=1e-4, atol=1e-7, err_msg=key)
+        elif key == "FLT/mean_frames":  # the first step to rounding; then Flow Lenia's chaos
+            np.testing.assert_allclose(one[key][:2], two[key][:2], atol=1e-5, err_msg=key)
+        elif key == "FLT/losses":
+            assert np.all(np.isfinite(two[key])) and one[key].shape == two[key].shape
         else:  # one Adam step: lr * g / |g| moves a near-zero gradient by up to lr either way
-            np.testing.assert_allclose(one[key], four[key], atol=2 * LEARNING_RATE, err_msg=key)
+            np.testing.assert_allclose(one[key], two[key], atol=2 * LEARNING_RATE, err_msg=key)
 
 
-def test_one_device_is_left_untouched():
-    assert jax.device_count() == 1 and sharding.mesh() is None
+def test_one_device_is_left_untouched(monkeypatch):
+    monkeypatch.setattr(sharding, "mesh", lambda: None)
     tree = {"a": jnp.ones((4, 2)), "b": 3.0}
     assert sharding.shard_batch(tree) is tree
+    fn = lambda x: x
+    assert sharding.over_seeds(fn, 2) is fn
+
+
+def test_matmul_bound_training_stays_whole_on_cpu_host_devices():
+    tree = {"a": jnp.ones((4, 2))}
+    if jax.device_count() > 1:  # CPU host devices: the QDT's minibatch is not split
+        assert sharding.shard_batch(tree, dense=True) is tree
+        split = jax.jit(sharding.shard_batch)(tree)
+        assert split["a"].devices() == set(jax.devices())
 
 
 def test_a_cluster_is_recognised_from_its_variables():

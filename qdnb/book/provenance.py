@@ -41,7 +41,8 @@ def device() -> str:
 
 def devices() -> dict[str, Any]:
     """The accelerator a run used: platform, kind, how many devices (all processes'
-    and this process's) and how many processes."""
+    and this process's), how many processes, and how the host device count was chosen
+    (``sharding.device_choice``)."""
     import jax
 
     d = jax.devices()[0]
@@ -51,7 +52,22 @@ def devices() -> dict[str, Any]:
         "count": jax.device_count(),
         "local_count": jax.local_device_count(),
         "process_count": jax.process_count(),
+        "chosen_by": sharding.device_choice().get("chosen_by", "unknown"),
     }
+
+
+def device_text() -> str:
+    """The devices in a sentence, for a page's provenance line: "2 CPU devices (one per
+    core of 2)", "1 GPU (NVIDIA H100)"."""
+    info = devices()
+    n, platform = info["count"], info["platform"]
+    if platform == "cpu":
+        how = info["chosen_by"]
+        if how.startswith("default"):
+            how = f"one per core of {sharding.cores()}"
+        return f"{n} CPU device{'s' * (n > 1)} ({how})"
+    name = {"gpu": "GPU", "tpu": "TPU"}.get(platform, platform)
+    return f"{n} {name}{'s' * (n > 1)} ({info['kind']})"
 
 
 def git_sha() -> str:
@@ -145,6 +161,13 @@ class Run:
     @property
     def config_hash(self) -> str:
         return config_hash(self.config)
+
+    def header(self) -> str:
+        """The page's provenance line: scale, seed, config hash and devices."""
+        return (
+            f"Scale **{self.scale}**, seed **{self.seed}**, config hash `{self.config_hash}`, "
+            f"{device_text()}."
+        )
 
     def summary(self, results: dict[str, Any]) -> dict[str, Any]:
         return {

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from qdnb.book import publish, registry
 from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
-from qdnb.core import paths
+from qdnb.core import paths, sharding
 from qdnb.core.config import SCALES, check_scale
 from qdnb.core.io import atomic_write_bytes, atomic_write_json, load_summary
 
@@ -63,8 +63,12 @@ def executed_path(name: str, scale: str) -> Path:
 
 def fingerprint(name: str, scale: str, seed: int) -> str:
     """Hash of what an execution depends on: the notebook, every ``qdnb`` source
-    file, the lock file, the scale and the seed."""
+    file, the lock file, the scale, the seed and the host device count its kernel
+    will ask for (a loop's rounding may depend on it)."""
+    devices = sharding.plan_host_devices(dict(os.environ))[0]["requested"]
     h = hashlib.sha256(f"{name}|{scale}|{seed}".encode())
+    if devices != 1:  # one device: the fingerprint it always had
+        h.update(f"|host devices {devices}".encode())
     files = [registry.chapter(name).notebook, paths.ROOT / "requirements.lock"]
     files += sorted((paths.ROOT / "qdnb").rglob("*.py"))
     for f in files:

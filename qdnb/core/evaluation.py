@@ -39,7 +39,10 @@ class Algorithm(Protocol):
     and ``lax.scan``: ``init(key) -> (state, evaluation)`` and ``step(state) ->
     (state, evaluation)``, with ``metrics(state)`` the scalars logged each step.
     The MAP-Elites family also has ``start(key) -> state`` (nothing evaluated yet),
-    so that a whole run is one compiled loop of ``step``."""
+    so that a whole run is one compiled loop of ``step``.  ``split`` (optional; default
+    ``"seeds"``) says what ``run_seeds`` splits over several devices when they do not
+    divide its seeds evenly: ``"population"`` for searches whose cost is a large
+    population's episodes (``qdnb.core.sharding.seed_slots``)."""
 
     def init(self, key: jax.Array) -> tuple[Any, Evaluation]: ...
 

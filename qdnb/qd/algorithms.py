@@ -38,6 +38,7 @@ from flax import struct
 
 from qdnb.core.evaluation import Evaluation
 from qdnb.core.loops import scan_in_chunks
+from qdnb.core.sharding import over_seeds, seed_slots
 from qdnb.core.tree import concat, take
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import evaluate_episodes, evaluate_policies
@@ -65,6 +66,9 @@ class PolicySearch:
     batch_size: int
     iso_sigma: float
     line_sigma: float
+
+    # over several devices, when they do not divide the seeds: split each population
+    split = "population"
 
     def evaluate(self, params: Any, key: jax.Array, return_trajectory: bool = False) -> Evaluation:
         return evaluate_policies(self.env, self.network.apply, params, key, return_trajectory)
@@ -245,6 +249,11 @@ def run_seeds(
 ):
     """Run one algorithm for several seeds at once (``vmap`` over ``keys``).
 
+    Over several devices (``qdnb.core.sharding``) the seeds are split when the devices
+    divide them evenly; otherwise each seed's population is split, or, for an algorithm
+    whose ``split`` is ``"seeds"``, the seeds are padded up to a multiple of the devices
+    and split (the extra seeds' results are dropped, and ``stop`` never sees them).
+
     Besides the algorithm's own metrics, when ``track_bins`` is given every
     evaluated descriptor is tracked on a fixed regular grid of ``track_bins``
     cells over the environment's descriptor bounds (see ``ExplorationTrack``),
@@ -279,11 +288,23 @@ def run_seeds(
     new_track = lambda: (
         None if track_bins is None else ExplorationTrack.create(math.prod(track_bins))
     )
+    # the seeds over the devices when they divide evenly, else each seed's population (or,
+    # for an algorithm that prefers it, seeds padded up to a multiple of the devices)
+    num_seeds, prefers = len(keys), getattr(algorithm, "split", "seeds")
+    slots = seed_slots(num_seeds, prefers)
+    if slots > num_seeds:  # extra seeds, whose results are dropped
+        extra = jax.random.split(jax.random.fold_in(keys[0], 0x5EED), slots - num_seeds)
+        keys = jnp.concatenate([keys, extra])
+        if stop is not None:
+            given_stop = stop
+            stop = lambda out: given_stop(jax.tree.map(lambda x: x[:, :num_seeds], out))
+    split = lambda fn: over_seeds(jax.vmap(fn), slots, prefers)
+    mine = lambda tree: tree if slots == num_seeds else jax.tree.map(lambda x: x[:num_seeds], tree)
     if getattr(algorithm, "start", None) is not None:
         # the initial evaluation is the first step: one compiled program for the whole loop
-        carry = jax.jit(jax.vmap(lambda k: (algorithm.start(k), new_track())))(keys)
+        carry = jax.jit(split(lambda k: (algorithm.start(k), new_track())))(keys)
         (states, tracks), history = scan_in_chunks(
-            jax.vmap(step),
+            split(step),
             carry,
             num_iterations + 1,
             chunk_size,
@@ -293,18 +314,19 @@ def run_seeds(
             on_chunk=on_chunk,
             stop=stop,
         )
-        return states, tracks, jax.tree.map(lambda h: jnp.swapaxes(h, 0, 1), history)
+        history = jax.tree.map(lambda h: jnp.swapaxes(h, 0, 1), history)
+        return mine(states), mine(tracks), mine(history)
 
     def init(key):
         state, ev = algorithm.init(key)
         track, out = record(state, new_track(), ev)
         return (state, track), out
 
-    carry, first = jax.jit(jax.vmap(init))(keys)
+    carry, first = jax.jit(split(init))(keys)
     if stop is not None and stop(jax.tree.map(lambda f: f[None], first)):
         stop = lambda _: True  # the initial batch already met it: stop after one chunk
     (states, tracks), history = scan_in_chunks(
-        jax.vmap(step),
+        split(step),
         carry,
         num_iterations,
         chunk_size,
@@ -317,4 +339,4 @@ def run_seeds(
     history = jax.tree.map(
         lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history
     )
-    return states, tracks, history
+    return mine(states), mine(tracks), mine(history)

@@ -314,6 +314,10 @@ class _EvolutionStrategy:
     weight_decay: float = 0.005
     noise_table_size: int | None = 2**21
 
+    # over several devices, when they do not divide the seeds: split each generation's
+    # perturbations (bench/scale_out.py)
+    split = "population"
+
     def __post_init__(self):
         n = self.num_perturbations
         if not isinstance(n, int) or n < 2 or n % 2:

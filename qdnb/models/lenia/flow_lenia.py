@@ -81,6 +81,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from qdnb.core.sharding import shard_batch
+
 RANGE_FIELDS = (
     "R_range",
     "r_range",
@@ -645,9 +647,8 @@ def simulate_batch(key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> tuple[Sy
     k_sys, k_init, k_run = jax.random.split(key, 3)
     systems = jax.vmap(sample_system, in_axes=(0, None))(jax.random.split(k_sys, batch), cfg)
     states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
-    episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(
-        systems, states, jax.random.split(k_run, batch)
-    )
+    systems, states, keys = shard_batch((systems, states, jax.random.split(k_run, batch)))
+    episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(systems, states, keys)
     return systems, episodes
 
 
@@ -662,6 +663,7 @@ def rollout_batch(system: System, states: State, key: jax.Array, cfg: FlowLeniaC
     """Episodes of one system from a batch of initial states (``A`` ``(B, H, W, C)``),
     one key each split from ``key``: ``A`` ``(B, T + 1, H, W, C)``, ``P`` likewise."""
     keys = jax.random.split(key, states.A.shape[0])
+    states, keys = shard_batch((states, keys))  # the episodes over every local device
     return jax.vmap(lambda st, k: rollout(system, st, k, cfg))(states, keys)
 
 

@@ -319,14 +319,16 @@ def train(
     progress: bool = True,
     desc: str = "FLT",
     max_seconds: float | None = None,
+    step_seconds: list[float] | None = None,
 ) -> TrainResult:
     """Train the FLT on episodes of ``system``, each batch simulated on the fly from
-    fresh random initial states (simulation and gradient step in one jitted
-    call).  Also accumulates the mean frame per timestep of the training
+    fresh random initial states (simulation and gradient step in one jitted call, both
+    split over every local device).  Also accumulates the mean frame per timestep of the training
     episodes (the mean-frame baseline).  With ``max_seconds``, training stops
     after the first step that ends past that many seconds (compilation included),
     or after ``cfg.train_steps``, whichever comes first (``bench/flt_sweep.py``
-    compares settings at an equal wall-clock budget).
+    compares settings at an equal wall-clock budget).  When ``step_seconds`` is a list,
+    each step's wall time is appended to it (the first includes compilation).
 
     The steps run in a Python loop, not a ``lax.scan``: XLA on CPU runs the
     convolutions' gradients about 10x slower inside a loop than as a top-level
@@ -343,7 +345,9 @@ def train(
     def one(params, opt_state, frame_sum, key):
         k_sim, k_drop = jax.random.split(key)
         episodes = fl.frames(fl.simulate_system(system, k_sim, world, cfg.batch_size))
-        episodes = shard_batch(episodes)  # data-parallel over every local device
+        # data-parallel over every local device, on CPU host devices too: the convolutions'
+        # gradients gain from it (bench/scale_out.py), unlike the QDT's matmuls
+        episodes = shard_batch(episodes)
         params, opt_state, loss = step(
             params, opt_state, episodes, k_drop if cfg.dropout > 0 else None
         )
@@ -379,9 +383,13 @@ def train(
         total=cfg.train_steps,
     )
     for i in bar:
+        began_step = time.perf_counter()
         params, opt_state, frame_sum, loss, drift = one(
             params, opt_state, frame_sum, jax.random.fold_in(k_train, i)
         )
+        if step_seconds is not None:
+            jax.block_until_ready(params)
+            step_seconds.append(time.perf_counter() - began_step)
         losses.append(loss)
         drifts.append(drift)
         if i % 50 == 49 or i == cfg.train_steps - 1:

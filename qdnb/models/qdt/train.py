@@ -42,10 +42,12 @@ def loss_fn(
 def loss_and_grads(
     model: QDT, params: Any, batch: Trajectories, key: jax.Array | None = None
 ) -> tuple[jax.Array, Any]:
-    """``loss_fn`` and its gradient, the minibatch split over every local device
+    """``loss_fn`` and its gradient, the minibatch split over every local accelerator
     (data parallel: each device takes its share of the trajectories, XLA sums the
-    gradients across devices; one device computes as before)."""
-    batch = shard_batch(batch)
+    gradients across devices; one device computes as before).  On CPU host devices it
+    stays whole on one (``shard_batch(dense=True)``): XLA spreads its matmuls over every
+    core, and splitting measured slower."""
+    batch = shard_batch(batch, dense=True)
     return jax.value_and_grad(lambda p: loss_fn(model, p, batch, key))(params)
 
 
