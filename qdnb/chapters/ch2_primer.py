@@ -255,7 +255,7 @@ SCALES = {
     "tiny": PrimerConfig(
         num_seeds=2, num_iterations=40, batch_size=64, chunk_size=20, ns_population=64
     ),
-    "small": PrimerConfig(num_seeds=5, num_iterations=2000, batch_size=256, chunk_size=100),
+    "small": PrimerConfig(num_seeds=10, num_iterations=4000, batch_size=256, chunk_size=100),
     "paper": PrimerConfig(
         num_seeds=10,
         num_iterations=1000,

@@ -239,12 +239,11 @@ SCALES = {
     ),
     "small": _scale(
         "small",
-        num_seeds=2,
+        num_seeds=4,
         num_perturbations=1000,
         pointmaze_steps=100_000_000,
         ant_perturbations=100,
         antmaze_steps=1_000_000,
-        ant_methods=("ME-ES",),
         ant_seeds=1,
     ),
     "paper": _scale(

@@ -883,7 +883,7 @@ SCALES = {
             features=(8, 16, 32),
             batch_size=8,
             learning_rate=1e-3,
-            train_steps=800,
+            train_steps=2000,
         ),
     ),  # bench/flt_sweep.py: "narrow-cnn"
     "paper": FlowLeniaChapterConfig(
