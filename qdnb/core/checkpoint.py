@@ -212,6 +212,11 @@ class LoopCheckpoints:
                         step,
                         args=ocp.args.Composite(state=ocp.args.StandardRestore(template(step))),
                     )["state"]
+                    # on the host: the loop's jitted code places it where it runs (over
+                    # every device, say), which arrays committed to one device would refuse
+                    import jax
+
+                    state = jax.device_get(state)
                     with _lock:
                         _resumed.append({"loop": self.name, "step": step})
                     return step, state, from_json(meta.get("extra"))

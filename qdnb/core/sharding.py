@@ -193,6 +193,9 @@ def shard_batch(tree: Any, dense: bool = False) -> Any:
     import jax
     from jax.sharding import NamedSharding, PartitionSpec
 
+    arrays = [x for x in jax.tree.leaves(tree) if getattr(x, "ndim", 0)]
+    if any(x.shape[0] % m.devices.size for x in arrays):
+        return tree  # a batch the devices do not divide (3 policies on 2) stays whole
     split = NamedSharding(m, PartitionSpec(BATCH))
     return jax.tree.map(
         lambda x: jax.lax.with_sharding_constraint(x, split) if getattr(x, "ndim", 0) else x, tree
