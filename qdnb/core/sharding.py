@@ -37,9 +37,9 @@ from typing import Any, Callable
 BATCH = "batch"
 
 # At most this many host devices by default.  Measured on 2 cores (bench/scale_out.py):
-# more devices than cores is slower (4 forced devices ran ME-LS at 0.87x the rate of 2);
-# past 8 a `small` population's share per device gets small (Point-Maze QD-PG's 8
-# actors, the QDT's 16-trajectory minibatches) while the gathers between devices grow.
+# more devices than cores is slower (4 forced devices ran ME-LS at 0.82-0.95x the rate of
+# 2, QD-PG at 0.5x); past 8 a `small` population's share per device gets small (QD-PG's 8
+# actors, a batch of 16 Flow Lenia episodes) while the gathers between devices grow.
 # Above 2 cores the cap is a judgement, not a measurement.
 HOST_DEVICE_CAP = 8
 DEVICE_COUNT_FLAG = "--xla_force_host_platform_device_count"
