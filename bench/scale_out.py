@@ -186,10 +186,10 @@ def flow_lenia_batch(scale: str) -> dict:
 
 
 def paired(build, trials: int = 3) -> dict:
-    """Seconds per step of two ways to place a training step, ``build(split)`` returning
-    a function that runs ``steps`` steps and their seconds: "split" over the devices
-    and "whole" (on one device), timed in alternation in this process (the machine's
-    speed drifts between processes)."""
+    """Seconds per step of two ways to place a training step, each ``build()`` call
+    running some steps and returning their seconds per step and losses: "split" over
+    the devices and "whole" (``mesh()`` patched to ``None``: one device), timed in
+    alternation in this process (the machine's speed drifts between processes)."""
     import numpy as np
 
     from qdnb.core import sharding
@@ -274,7 +274,6 @@ def flt_step(scale: str, steps: int = 8) -> dict:
     import dataclasses
 
     import jax
-    import numpy as np
 
     from qdnb.book.registry import config
     from qdnb.models.lenia import flow_lenia as fl
@@ -299,7 +298,7 @@ def flt_step(scale: str, steps: int = 8) -> dict:
         "episodes_per_s": flt_cfg.batch_size / per_step["split"],
         "seconds_per_step_split": per_step["split"],
         "seconds_per_step_whole": per_step["whole"],
-        "whole_over_split": float(np.float64(per_step["split"] / per_step["whole"])),
+        "whole_over_split": per_step["split"] / per_step["whole"],
         "losses": losses["split"],
     }
 

@@ -174,9 +174,9 @@ def mesh() -> Any | None:
 SPLIT_SEEDS = True
 SPLIT_DENSE_ON_CPU = False
 
-# True while tracing one device's share of a seeds-split loop (``over_seeds``): its
-# populations then stay whole on that device.
-_seeds_split = contextvars.ContextVar("qdnb_seeds_split", default=False)
+# True while tracing a loop body whose populations stay whole (``over_seeds``: one
+# device's share of split seeds, or a "seeds" algorithm whose seeds cannot be split).
+_populations_whole = contextvars.ContextVar("qdnb_populations_whole", default=False)
 
 
 def shard_batch(tree: Any, dense: bool = False) -> Any:
@@ -188,7 +188,7 @@ def shard_batch(tree: Any, dense: bool = False) -> Any:
     over every core, and splitting it measured half as fast (``bench/scale_out.py``).
     Inside a seeds-split loop (``over_seeds``) nothing is split further."""
     m = mesh()
-    if m is None or _seeds_split.get() or (dense and not _splits_dense(m)):
+    if m is None or _populations_whole.get() or (dense and not _splits_dense(m)):
         return tree
     import jax
     from jax.sharding import NamedSharding, PartitionSpec
@@ -223,7 +223,7 @@ def seed_slots(num_seeds: int, split: str = "population") -> int:
     - ``"population"`` (a population of policies to evaluate: the MAP-Elites family, the
       ES): ``num_seeds``; each seed's population is split instead (``shard_batch``);
     - ``"seeds"`` (a few actors and much dense work, which a population split would
-      repeat on every device: QD-PG, PGA-ME, the RL agents): padded up to a multiple of
+      repeat on every device: QD-PG, the RL agents): padded up to a multiple of
       the devices when that leaves each device fewer seeds than one device would run
       (3 seeds on 2 devices: 4, two per device); the extra seeds' results are dropped.
     """
@@ -245,18 +245,18 @@ def over_seeds(fn: Callable[..., Any], num_seeds: int, split: str = "population"
     does nothing inside).  Otherwise ``fn`` as it is (its populations split), or, for
     an algorithm whose ``split`` is ``"seeds"``, ``fn`` with its populations whole (on
     one device: a split would repeat its dense work on every device)."""
-    m = mesh()
-    if m is None or not (splits_seeds(num_seeds) or split == "seeds"):
+    m, seeds_split = mesh(), splits_seeds(num_seeds)
+    if m is None or not (seeds_split or split == "seeds"):
         return fn
 
     def whole(*args):
-        token = _seeds_split.set(True)
+        token = _populations_whole.set(True)
         try:
             return fn(*args)
         finally:
-            _seeds_split.reset(token)
+            _populations_whole.reset(token)
 
-    if not splits_seeds(num_seeds):
+    if not seeds_split:
         return whole
     import jax
     from jax.sharding import PartitionSpec

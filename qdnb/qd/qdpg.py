@@ -99,8 +99,8 @@ class QDPG(PolicyMapElites):
     # QD-PG evaluates its initial batch in ``init`` (run_seeds then compiles init and step)
     start = None
     # a few actors and much dense work (critics, policy gradients, novelty): over several
-    # devices, split (padded) seeds, never a population (bench/scale_out.py: 0.91x of one
-    # device when its population was split)
+    # devices, split (padded) seeds, never a population (bench/scale_out.py: 0.80-0.83x of
+    # one device when its population was split)
     split = "seeds"
 
     @property
