@@ -1,7 +1,11 @@
 """Exact k-nearest-neighbour novelty on CPU: a full ``top_k`` against the
 blockwise ``k_smallest`` of ``qdnb.qd.novelty``, for the query count of one
 QD-PG iteration (100 critic batches of 256) and the archive sizes of `small`
-(2,000) and `paper` (10,000).  Writes ``bench/results/knn.json``.
+(2,000) and `paper` (10,000); and the chunk of queries ``NoveltyArchive.novelty``
+scores at a time, on the queries of one iteration of the thesis's coupling at
+`small` (4 diversity actors x 100 critic steps x 256 = 102,400) against a full
+archive of 10,000, one such set per device as QD-PG's seeds run.  Writes
+``bench/results/knn.json``.
 
     python bench/knn.py [--repeats 5]
 """
@@ -29,6 +33,25 @@ def best_time(fn, x, repeats: int) -> float:
         jax.block_until_ready(fn(x))
         times.append(time.perf_counter() - start)
     return min(times)
+
+
+def chunk_sweep(repeats: int, queries: int = 102_400) -> dict[str, float]:
+    """Seconds to score ``queries`` per device against a full archive of 10,000, by chunk."""
+    from qdnb.core.sharding import over_seeds
+    from qdnb.qd.novelty import NoveltyArchive
+
+    n = len(jax.devices())
+    data = jax.random.normal(jax.random.PRNGKey(1), (10_000, 2)) * 0.3
+    archive = NoveltyArchive.create(10_000, 2).replace(
+        data=data, num_added=jax.numpy.asarray(10_000, jax.numpy.int32)
+    )
+    q = jax.random.uniform(jax.random.PRNGKey(0), (n, queries, 2), minval=-1, maxval=1)
+    out = {}
+    for chunk in (64, 128, 256, 1024):
+        score = lambda x, chunk=chunk: archive.novelty(x, 10, chunk=chunk)
+        out[str(chunk)] = best_time(jax.jit(over_seeds(jax.vmap(score), n, "seeds")), q, repeats)
+        print(f"chunk {chunk}: {out[str(chunk)]:.3f} s", flush=True)
+    return out
 
 
 def main() -> None:
@@ -65,6 +88,7 @@ def main() -> None:
             }
         )
         print(rows[-1], flush=True)
+    chunks = chunk_sweep(args.repeats)
     out = {
         "device": jax.devices()[0].platform,
         "machine": platform.machine(),
@@ -74,6 +98,7 @@ def main() -> None:
         "k": k,
         "repeats": args.repeats,
         "rows": rows,
+        "novelty_chunk_seconds": chunks,
     }
     path = Path(__file__).parent / "results" / "knn.json"
     path.write_text(json.dumps(out, indent=1) + "\n")

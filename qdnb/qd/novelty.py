@@ -60,19 +60,26 @@ def block_size(m: int, k: int) -> int:
     return min(divisors, key=lambda b: abs(b - target)) if divisors else target
 
 
+REDUCTIONS = ("mean", "sum")
+
+
 def knn_novelty(
     queries: jax.Array,
     reference: jax.Array,
     k: int,
     reference_valid: jax.Array | None = None,
     exclude_self: bool = False,
+    reduction: str = "mean",
 ) -> jax.Array:
-    """Mean distance of each query to its ``k`` nearest valid references (Eq. 2.5).
+    """Mean distance of each query to its ``k`` nearest valid references (Eq. 2.5),
+    or their sum with ``reduction="sum"`` (Eq. 3.5 as printed).
 
     With ``exclude_self`` the queries are the first rows of ``reference`` and a
     query is not its own neighbour.  With fewer than ``k`` valid references the
-    mean is over those there are; with none, the novelty is ``+inf``.
+    mean (or sum) is over those there are; with none, the novelty is ``+inf``.
     """
+    if reduction not in REDUCTIONS:
+        raise ValueError(f"unknown reduction {reduction!r}; valid: {', '.join(REDUCTIONS)}")
     if reference.shape[0] < k:
         raise ValueError(f"reference set of {reference.shape[0]} rows is smaller than k={k}")
     d = pairwise_squared_distances(queries, reference)
@@ -85,7 +92,8 @@ def knn_novelty(
     finite = jnp.isfinite(nearest)
     count = jnp.sum(finite, axis=-1)
     total = jnp.sum(jnp.where(finite, nearest, 0.0), axis=-1)
-    return jnp.where(count > 0, total / jnp.maximum(count, 1), jnp.inf)
+    score = total if reduction == "sum" else total / jnp.maximum(count, 1)
+    return jnp.where(count > 0, score, jnp.inf)
 
 
 @struct.dataclass
@@ -112,20 +120,28 @@ class NoveltyArchive:
     def size(self) -> jax.Array:
         return jnp.minimum(self.num_added, self.capacity)
 
-    def novelty(self, queries: jax.Array, k: int, chunk: int = 1024) -> jax.Array:
-        """Novelty of each query with respect to the archive (Eq. 2.5 / Eq. 3.5).
+    def novelty(
+        self, queries: jax.Array, k: int, chunk: int = 128, reduction: str = "mean"
+    ) -> jax.Array:
+        """Novelty of each query with respect to the archive (Eq. 2.5 / Eq. 3.5):
+        the mean distance to its ``k`` nearest entries, or their sum
+        (``reduction``, see ``knn_novelty``).
 
         ``queries`` may have any leading axes (QD-PG scores every batch of an
         iteration at once); more than ``chunk`` queries are scored ``chunk`` at
         a time, which bounds the distance matrix in memory and changes no value.
+        A chunk's distances to 10,000 entries (5 MB at 128) stay in the caches:
+        on 2 cores, 102,400 queries took 1.05 s at 128 against 1.67 s at 1,024
+        (32 and 64: 0.93 and 1.00 s, within this probe's noise).
         """
+        score = lambda q: knn_novelty(q, self.data, k, self.valid, reduction=reduction)
         lead, dim = queries.shape[:-1], queries.shape[-1]
         flat = queries.reshape(-1, dim)
         n = flat.shape[0]
         if n <= chunk:
-            return knn_novelty(flat, self.data, k, self.valid).reshape(lead)
+            return score(flat).reshape(lead)
         padded = jnp.pad(flat, ((0, (-n) % chunk), (0, 0))).reshape(-1, chunk, dim)
-        scores = jax.lax.map(lambda q: knn_novelty(q, self.data, k, self.valid), padded)
+        scores = jax.lax.map(score, padded)
         return scores.reshape(-1)[:n].reshape(lead)
 
     def add(
