@@ -98,6 +98,35 @@ def maze_regions(points, tolerance: float = 1e-6) -> dict:
     }
 
 
+FACE_OFFSET = 1e-3  # how far off its face a stopped point's behaviour descriptor is put
+
+
+def off_the_faces(p: jax.Array, tolerance: float = 1e-6) -> jax.Array:
+    """``p`` (last axis: x, y) with every point that lies on a wall's face moved
+    ``FACE_OFFSET`` off it, to the side it is on (a point stopped on a wall's lower
+    face stays below the wall).  A face can lie on a grid's cell edge (the upper
+    wall's lower face, y = 0.2, is one of the 5 x 5 grid's): without this, float
+    rounding decides whether a point stopped under the wall is filed in the cell
+    above it."""
+    x, y = p[..., 0], p[..., 1]
+    for x0, x1, lo, hi in WALLS:
+        along = (x >= x0) & (x <= x1)
+        y = jnp.where(along & (jnp.abs(y - lo) < tolerance), lo - FACE_OFFSET, y)
+        y = jnp.where(along & (jnp.abs(y - hi) < tolerance), hi + FACE_OFFSET, y)
+    return jnp.stack([x, y], axis=-1)
+
+
+def reachable(points) -> np.ndarray:
+    """Whether each point (NumPy, last axis: x, y) can be reached: in the arena and
+    not strictly inside a wall (the maze is connected)."""
+    points = np.asarray(points)
+    x, y = points[..., 0], points[..., 1]
+    inside = np.zeros(points.shape[:-1], bool)
+    for x0, x1, lo, hi in WALLS:
+        inside |= (x > x0) & (x < x1) & (y > lo) & (y < hi)
+    return (np.abs(x) <= 1.0) & (np.abs(y) <= 1.0) & ~inside
+
+
 def in_goal(p: jax.Array) -> jax.Array:
     """Whether each position (last axis: x, y) lies in the goal square."""
     return jnp.all(jnp.abs(p - jnp.asarray(GOAL)) <= GOAL_HALF_SIDE, axis=-1)
@@ -107,7 +136,8 @@ def in_goal(p: jax.Array) -> jax.Array:
 class PointMaze(Env):
     """Point-Maze (Sections 1.5 and 3.6.1).
 
-    Observation = position, behaviour descriptor = final position, state
+    Observation = position, behaviour descriptor = final position (moved 10^-3 off
+    a wall's face it stopped on, to its side: ``off_the_faces``), state
     descriptor = position, reward = minus the distance to the goal; reaching the
     goal zone (a square of side 0.1 centred on the goal) ends the episode.
     """
@@ -136,6 +166,10 @@ class PointMaze(Env):
             state_descriptor=pos,
             steps=jnp.zeros((), dtype=jnp.int32),
         )
+
+    def behaviour_descriptor(self, last_state_descriptor, state_descriptor_sum, length):
+        del state_descriptor_sum, length
+        return off_the_faces(last_state_descriptor)
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         pos = move(state.core, action, self.step_size)
