@@ -7,7 +7,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
+from jax.flatten_util import ravel_pytree
 
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import (
@@ -26,6 +28,7 @@ from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.novelty import NoveltyArchive, k_smallest, knn_novelty
 from qdnb.qd.qdpg import QDPG, update_kinds
 from qdnb.rl.agents import TD3Agent
+from qdnb.rl.buffer import ReplayBuffer
 from qdnb.rl.td3 import TD3Config, td3_target
 
 
@@ -527,3 +530,222 @@ def test_maze_regions_split_the_maze_at_the_walls():
     assert shares["between the walls"] == 3 / 6
     assert shares["right-hand passage (x > 0.5, between the walls)"] == 1 / 6
     assert shares["above the upper wall"] == 2 / 6
+
+
+# ----- issue 35: how the critics meet the actors, the reward's reduction, the wall faces -----
+
+
+def one_transition_buffer(algo, copies=32):
+    """A buffer holding ``copies`` of one transition, so that every replay batch is the
+    same whatever the key."""
+    buffer = ReplayBuffer.create(100, 2, 2, 2)
+    row = {
+        "obs": jnp.array([0.1, -0.3]),
+        "action": jnp.array([0.5, -0.2]),
+        "reward": jnp.asarray(-0.7),
+        "next_obs": jnp.array([0.15, -0.32]),
+        "terminal": jnp.asarray(0.0),
+        "state_descriptor": jnp.array([0.1, -0.3]),
+    }
+    stacked = jax.tree.map(lambda x: jnp.broadcast_to(x, (copies,) + x.shape), row)
+    batch = jax.tree.map(
+        lambda x: jnp.broadcast_to(x, (algo.td3_config.batch_size,) + x.shape), row
+    )
+    return buffer.add(stacked), batch
+
+
+def test_the_thesis_coupling_trains_each_critic_with_the_actors_being_improved(maze):
+    """Two quality actors, two critic steps (policy delay 2), then one actor step each,
+    on a buffer of one transition and without target-policy noise: each critic step's
+    gradient is the mean of the actors' gradients, each computed with that actor as the
+    TD3 target policy; the critic's own greedy actor plays no part."""
+    cfg = TD3Config(batch_size=16, critic_hidden=(8,), actor_lr=1e-2, policy_noise=0.0)
+    algo = dataclasses.replace(
+        small_qdpg(maze, "quality"), td3_config=cfg, num_critic_steps=2, coupling="thesis"
+    )
+    td3 = algo.td3
+    state, _ = algo.init(jax.random.PRNGKey(0))
+    buffer, batch = one_transition_buffer(algo)
+    state = state.replace(buffer=buffer)
+    parents = jax.vmap(lambda k: td3.actor.init(k, jnp.zeros(2)))(
+        jax.random.split(jax.random.PRNGKey(5), 2)
+    )
+    diversity = jnp.array([False, False])
+    offspring, q, d = algo.coupled_updates(state, parents, diversity, jax.random.PRNGKey(6))
+
+    one = lambda t, i: jax.tree.map(lambda x: x[i], t)
+    key = jax.random.PRNGKey(0)  # no target-policy noise: the key plays no part
+
+    def by_hand(target_policies):
+        critic = state.q_critic
+        for _ in range(2):
+            grads = [
+                td3.critic_grads(critic.critic, critic.critic_target, a, batch, key)[1]
+                for a in target_policies
+            ]
+            critic = td3.apply_critic_grads(
+                critic, jax.tree.map(lambda *g: sum(g) / len(g), *grads)
+            )
+        return critic
+
+    expected = by_hand([one(parents, 0), one(parents, 1)])
+    for a, b in zip(jax.tree.leaves(q.critic), jax.tree.leaves(expected.critic)):
+        np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-6)
+    # the other reading, the critic's own greedy actor as target policy, is another gradient
+    grads_of = lambda a: td3.critic_grads(
+        state.q_critic.critic, state.q_critic.critic_target, a, batch, key
+    )[1]
+    ours = ravel_pytree(grads_of(one(parents, 0)))[0]
+    greedy = ravel_pytree(grads_of(state.q_critic.actor_target))[0]
+    assert float(jnp.linalg.norm(ours - greedy)) > 1e-3 * float(jnp.linalg.norm(ours))
+    # the diversity critic is not used by Q-PG and does not move
+    for a, b in zip(jax.tree.leaves(d), jax.tree.leaves(state.d_critic)):
+        np.testing.assert_array_equal(a, b)
+    # each actor then takes one step of the mutation optimiser against the updated critic
+    opt = td3.mutation_optimizer
+    for i in range(2):
+        actor = one(parents, i)
+        grads = jax.grad(td3.actor_loss)(actor, expected.critic, batch["obs"])
+        updates, _ = opt.update(grads, opt.init(actor))
+        hand = optax.apply_updates(actor, updates)
+        for a, b in zip(jax.tree.leaves(one(offspring, i)), jax.tree.leaves(hand)):
+            np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-6)
+
+
+def test_the_thesis_coupling_drives_each_critic_by_the_actors_of_its_kind(maze):
+    """QD-PG: the diversity actors' batches get fresh novelty rewards, the quality
+    actors' keep the environment's; both critics move, and a step of the whole loop
+    plays exactly batch_size mutated actors."""
+    algo = dataclasses.replace(small_qdpg(maze, archive_k=2), coupling="thesis")
+    archive = NoveltyArchive.create(4, 2).replace(
+        data=jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]),
+        num_added=jnp.asarray(4, jnp.int32),
+    )
+    sd = jnp.broadcast_to(jnp.array([0.0, 1.0]), (3, 4, 5, 2))  # steps x actors x batch
+    batches = {"state_descriptor": sd, "reward": jnp.full((3, 4, 5), -0.5)}
+    diversity = jnp.array([True, False, True, False])
+    rewards = np.asarray(algo.actor_rewards(archive, batches, diversity))
+    np.testing.assert_allclose(rewards[:, [0, 2]], 1.0, rtol=1e-6)  # novelty of (0, 1): 1.0
+    np.testing.assert_allclose(rewards[:, [1, 3]], -0.5)
+    state, _ = algo.init(jax.random.PRNGKey(0))
+    new, ev = jax.jit(algo.step)(state)
+    assert ev.fitness.shape == (algo.batch_size,)
+    for old, moved in ((state.q_critic, new.q_critic), (state.d_critic, new.d_critic)):
+        assert any(
+            not np.array_equal(a, b)
+            for a, b in zip(jax.tree.leaves(old.critic), jax.tree.leaves(moved.critic))
+        )
+
+
+def test_qdax_coupling_plays_the_greedy_actors_into_buffer_archive_and_grid(maze):
+    """QDax's variant: of batch_size episodes, the last two are the quality and the
+    diversity critics' greedy actors (their actions are theirs); every one of their
+    steps enters the replay buffer and the archive, and they compete for cells."""
+    algo = dataclasses.replace(small_qdpg(maze), coupling="qdax")
+    assert algo.num_mutations == algo.batch_size - 2
+    state, _ = algo.init(jax.random.PRNGKey(0))
+    state = state.replace(d_critic=algo.td3.init(jax.random.PRNGKey(9)))
+    new, ev = jax.jit(algo.step)(state)
+    apply = algo.network.apply
+    for episode, critic in ((-2, state.q_critic), (-1, state.d_critic)):
+        length = int(ev.length[episode])
+        obs = ev.trajectory["obs"][episode, :length]
+        np.testing.assert_allclose(
+            ev.trajectory["action"][episode, :length],
+            jax.vmap(lambda o: apply(critic.actor, o))(obs),
+            rtol=1e-5,
+            atol=1e-6,
+        )
+    # the buffer: the old transitions, then every valid step of the batch, greedy episodes last
+    before, added = int(state.buffer.size), int(ev.length.sum())
+    assert int(new.buffer.size) == before + added
+    last = int(ev.length[-1])
+    np.testing.assert_allclose(
+        new.buffer.data["obs"][before + added - last : before + added],
+        ev.trajectory["obs"][-1, :last],
+    )
+    # the archive: the whole batch's state descriptors, greedy episodes included, in order
+    t = ev.trajectory
+    expected = state.archive.add(
+        t["state_descriptor"].reshape(-1, 2),
+        algo.archive_threshold,
+        algo.archive_k,
+        t["valid"].reshape(-1),
+    )
+    np.testing.assert_array_equal(new.archive.data, expected.data)
+    # the grid: each cell holds the best of its incumbent and of the batch's episodes in it
+    cells = np.asarray(
+        jax.vmap(lambda d: jnp.argmin(jnp.sum((algo.centroids - d) ** 2, -1)))(ev.descriptor)
+    )
+    for i in (-2, -1):
+        in_cell = cells == cells[i]
+        best = max(float(state.repertoire.fitnesses[cells[i]]), float(ev.fitness[in_cell].max()))
+        assert float(new.repertoire.fitnesses[cells[i]]) == pytest.approx(best)
+    with pytest.raises(ValueError, match="at least one must be a mutation"):
+        dataclasses.replace(algo, batch_size=2)
+    with pytest.raises(ValueError, match="unknown coupling"):
+        dataclasses.replace(algo, coupling="cem")
+
+
+def test_novelty_reward_sums_or_averages_the_k_distances(maze):
+    """Eq. 3.5 sums the K neighbour distances, Section 3.6.3 averages them."""
+    archive = NoveltyArchive.create(4, 2).replace(
+        data=jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]),
+        num_added=jnp.asarray(4, jnp.int32),
+    )
+    batch = {"state_descriptor": jnp.array([[0.0, 1.0], [1.0, 1.0]])}
+    mean = [1.0, (1.0 + np.sqrt(2.0)) / 2]
+    for reduction, expected in (("mean", mean), ("sum", [2.0, 1.0 + np.sqrt(2.0)])):
+        algo = small_qdpg(maze, archive_k=2, novelty_reduction=reduction)
+        np.testing.assert_allclose(algo.novelty_reward(archive, batch), expected, rtol=1e-6)
+    # with fewer valid entries than K, the sum is over those there are
+    few = archive.replace(num_added=jnp.asarray(1, jnp.int32))
+    np.testing.assert_allclose(
+        few.novelty(batch["state_descriptor"], 2, reduction="sum"), [1.0, np.sqrt(2.0)], rtol=1e-6
+    )
+    with pytest.raises(ValueError, match="unknown novelty_reduction"):
+        small_qdpg(maze, novelty_reduction="median")
+
+
+def test_a_point_on_a_wall_face_is_filed_on_its_side():
+    """The upper wall's lower face (y = 0.2) is an edge of the 5 x 5 grid: a point
+    stopped under the wall is filed in the row below it, one on its upper face in
+    the row above; the lower wall's faces lie inside a row and stay there."""
+    from qdnb.envs.pointmaze import FACE_OFFSET, PointMaze, off_the_faces, reachable
+    from qdnb.qd.cvt import nearest
+
+    centroids = grid_centroids((5, 5), (-1, -1), (1, 1))
+    row = lambda p: float(centroids[int(nearest(centroids, jnp.asarray([p], jnp.float32))[0]), 1])
+    faces = {
+        (-0.3, 0.20): (0.20 - FACE_OFFSET, 0.0),  # under the upper wall: the row of y = 0
+        (-0.3, 0.21): (0.21 + FACE_OFFSET, 0.4),  # on top of it: the row of y = 0.4
+        (0.0, -0.50): (-0.50 - FACE_OFFSET, -0.4),  # under the lower wall
+        (0.0, -0.49): (-0.49 + FACE_OFFSET, -0.4),  # on top of it
+        (0.8, 0.20): (0.20, None),  # past the upper wall's end: not on a face, unchanged
+    }
+    for (x, y), (moved, cell_row) in faces.items():
+        p = off_the_faces(jnp.array([x, y], jnp.float32))
+        assert float(p[0]) == pytest.approx(x) and float(p[1]) == pytest.approx(moved, abs=1e-7)
+        if cell_row is not None:
+            assert row(p) == pytest.approx(cell_row)
+    # an episode that pushes up under the upper wall ends filed below it
+    env = PointMaze(episode_length=5)
+    state = env.reset(jax.random.PRNGKey(0)).replace(core=jnp.array([-0.3, 0.05]))
+    for _ in range(5):
+        state = env.step(state, jnp.array([0.0, 1.0]))
+    assert float(state.core[1]) == pytest.approx(0.2)
+    d = env.behaviour_descriptor(state.state_descriptor, None, None)
+    assert row(d) == pytest.approx(0.0)
+    # reachability: the walls' insides are not reachable, their faces and the arena are
+    assert reachable(np.array([[-0.3, 0.205], [0.0, -0.495]])).tolist() == [False, False]
+    assert reachable(np.array([[-0.3, 0.2], [0.0, -0.49], [0.9, 0.9]])).all()
+
+
+def test_coverage_counts_the_reachable_cells():
+    from qdnb.chapters.ch3_qdpg import reachable_cells, reachable_coverage
+
+    env = make_env("pointmaze")
+    assert reachable_cells("pointmaze", env, 5).all()  # every cell of the 5 x 5 grid has room
+    filled = np.zeros((2, 25), bool)
+    filled[0, :5] = True
+    np.testing.assert_allclose(reachable_coverage(filled, "pointmaze", env, 5), [0.2, 0.0])

@@ -151,14 +151,18 @@ class TD3:
         q1, _ = self.critic.apply(critic, obs, self.actor.apply(actor, obs))
         return -jnp.mean(q1)
 
-    def critic_step(
-        self, state: TD3State, batch: dict, key: jax.Array
-    ) -> tuple[TD3State, jax.Array]:
-        """One critic update, then a soft update (rate ``tau``) of the target
-        critic when the step count is a multiple of ``target_update_interval``."""
+    def critic_grads(
+        self, critic: Any, critic_target: Any, actor_target: Any, batch: dict, key: jax.Array
+    ) -> tuple[jax.Array, Any]:
+        """The loss and gradient of one critic step whose TD target is computed by
+        ``critic_target`` with ``actor_target`` as the target policy."""
+        y = jax.lax.stop_gradient(self.target(critic_target, actor_target, batch, key))
+        return jax.value_and_grad(self.critic_loss)(critic, batch, y)
+
+    def apply_critic_grads(self, state: TD3State, grads: Any) -> TD3State:
+        """One optimiser step of the critic, then a soft update (rate ``tau``) of the
+        target critic when the step count is a multiple of ``target_update_interval``."""
         cfg = self.config
-        y = jax.lax.stop_gradient(self.target(state.critic_target, state.actor_target, batch, key))
-        loss, grads = jax.value_and_grad(self.critic_loss)(state.critic, batch, y)
         updates, critic_opt = self.critic_optimizer.update(grads, state.critic_opt)
         critic = optax.apply_updates(state.critic, updates)
         steps = state.steps + 1
@@ -170,7 +174,16 @@ class TD3:
         )
         return state.replace(
             critic=critic, critic_opt=critic_opt, critic_target=target, steps=steps
-        ), loss
+        )
+
+    def critic_step(
+        self, state: TD3State, batch: dict, key: jax.Array
+    ) -> tuple[TD3State, jax.Array]:
+        """One critic update against the state's own target actor (``apply_critic_grads``)."""
+        loss, grads = self.critic_grads(
+            state.critic, state.critic_target, state.actor_target, batch, key
+        )
+        return self.apply_critic_grads(state, grads), loss
 
     def actor_step(self, state: TD3State, obs: jax.Array) -> TD3State:
         """One step of the greedy actor against the current critic, then a soft
