@@ -1,13 +1,16 @@
 """QD-PG on Point-Maze: wall time and environment steps per second, split into
 evaluation (episodes, insertion, buffer and archive writes), novelty (the fresh
-novelty rewards of every diversity batch) and gradient updates (actor steps and
-critic training).  Writes ``bench/results/qdpg.json``.
+novelty rewards of every diversity actor's batches), critic steps and actor steps
+(the thesis's coupling interleaves them: ``qdnb.qd.qdpg``).  Writes
+``bench/results/qdpg.json``.
 
     python bench/qdpg.py [--scale small] [--iterations 40]
 
 Each part is one jitted function timed on the same warmed-up state, so the
 parts add up to about one iteration; the novelty part scores every critic batch
-of an iteration in one pass, as the critic training does.  The whole loop is
+of an iteration in one pass, as the coupled updates do; the actor steps are timed alone
+(the iteration's policy-gradient steps of every actor against a fixed critic) and
+the critic steps are the coupled updates less novelty and actor steps.  The whole loop is
 timed two ways: compiled once as a single ``lax.scan`` (the steady rate,
 extrapolated to the scale's budget), and as the notebook runs it, through
 ``run_seeds`` on the notebook's QD-PG seeds (``vmap``, jitted chunks) for the
@@ -27,6 +30,7 @@ import time
 from pathlib import Path
 
 import jax
+import optax
 
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms, steady_rate
@@ -70,27 +74,43 @@ def main() -> None:
         rep, ev = algo.evaluate_and_insert(s.repertoire, parents, k)
         return rep, algo._record(s.buffer, s.archive, ev)
 
+    n, steps, delay = task.num_actors, task.num_critic_steps, cfg.policy_delay
+
+    def iteration_batches(s, k):
+        rows = s.buffer.sample(k, steps * n * cfg.td3_batch_size)
+        return jax.tree.map(lambda x: x.reshape((steps, n, cfg.td3_batch_size) + x.shape[1:]), rows)
+
     def novelty(s, k):
-        batches = s.buffer.sample(k, task.num_critic_steps * cfg.td3_batch_size)
-        batches = jax.tree.map(
-            lambda x: x.reshape((task.num_critic_steps, cfg.td3_batch_size) + x.shape[1:]), batches
-        )
-        return algo.novelty_reward(s.archive, batches)
+        return algo.actor_rewards(s.archive, iteration_batches(s, k), diversity)
 
     def updates(s, k):
-        k1, k2 = jax.random.split(k)
-        return algo.mutate(s, parents, diversity, k1), algo.train_critics(s, k2)
+        return algo.coupled_updates(s, parents, diversity, k)
+
+    def actor_steps(s, k):
+        obs = iteration_batches(s, k)["obs"][delay - 1 :: delay]  # one batch per actor step
+        td3, opt = algo.td3, algo.td3.mutation_optimizer
+
+        def one(carry, o):
+            actors, opts = carry
+            grads = jax.vmap(jax.grad(td3.actor_loss), in_axes=(0, None, 0))(
+                actors, s.q_critic.critic, o
+            )
+            updates, opts = jax.vmap(opt.update)(grads, opts)
+            return (optax.apply_updates(actors, updates), opts), None
+
+        return jax.lax.scan(one, (parents, jax.vmap(opt.init)(parents)), obs)[0]
 
     parts = {
         name: timed(jax.jit(fn), state, key)
         for name, fn in (
             ("evaluation", evaluation),
             ("novelty", novelty),
-            ("gradient_updates", updates),
+            ("updates", updates),
+            ("actor_steps", actor_steps),
         )
     }
-    # The critic training computes the novelty rewards: count them once, as novelty.
-    parts["gradient_updates"] = max(parts["gradient_updates"] - parts["novelty"], 0.0)
+    # the coupled updates compute the novelty rewards and the actor steps: the rest is critics
+    parts["critic_steps"] = max(parts.pop("updates") - parts["novelty"] - parts["actor_steps"], 0.0)
     steps_per_iteration = task.num_actors * task.episode_length
 
     # Through run_seeds on the notebook's QD-PG seeds, with the notebook's statistic: the median
@@ -136,7 +156,8 @@ def main() -> None:
         "num_actors": task.num_actors,
         "episode_length": task.episode_length,
         "num_critic_steps": task.num_critic_steps,
-        "num_pg_steps": task.num_pg_steps,
+        "coupling": algo.coupling,
+        "actor_steps_per_mutation": task.num_critic_steps // cfg.policy_delay,
         "archive_size": task.archive_size,
         "archive_threshold": task.archive_threshold,
         "archive_entries_at_timing": int(state.archive.size),
@@ -159,6 +180,15 @@ def main() -> None:
         "scale_budget_steps": task.num_steps,
         "projected_seconds_for_scale_budget": per_iteration * task.num_iterations,
         "projected_seconds_for_1e6_steps": per_iteration * 1_000_000 / steps_per_iteration,
+        # the notebook's way: its QD-PG seeds at once over the devices, per seed of 10^6 steps
+        "run_seeds_seconds_for_1e6_steps_all_seeds": run_seeds_per_iteration
+        * 1_000_000
+        / steps_per_iteration,
+        "run_seeds_seconds_per_seed_for_1e6_steps": run_seeds_per_iteration
+        * 1_000_000
+        / steps_per_iteration
+        / seeds,
+        "devices": len(jax.devices()),
     }
     out = Path(__file__).parent / "results" / "qdpg.json"
     out.parent.mkdir(exist_ok=True)

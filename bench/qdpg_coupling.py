@@ -22,6 +22,9 @@ the chapter's methods only if it reaches the exit zone on more seeds than (b).  
 takes the variant of (b) and (c) with more seeds in the exit zone; on a tie, the
 higher mean final performance.
 
+Added after (d)'s result, outside the rules above (``--extra``): ``x-thesis-sum``, the
+thesis's coupling with the sum, the run (d)'s result asks for next.
+
 Table 3.2's gradient-step ratio (800 critic steps per iteration, 400 mutation steps in
 the thesis's coupling) is not run: the script times two of its iterations and
 records what 10^6 steps would cost (``table_3_2_ratio``).
@@ -61,6 +64,7 @@ VARIANTS = {
     "b-thesis": dict(coupling="thesis"),
     "c-qdax": dict(coupling="qdax"),
 }
+EXTRA = {"x-thesis-sum": dict(coupling="thesis", novelty_reduction="sum")}
 RULE = (
     "(d) takes the coupling of b-thesis or c-qdax with more seeds in the exit zone; on a "
     "tie, the higher mean final performance"
@@ -115,6 +119,7 @@ def main() -> None:
         "--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_coupling.json"
     )
     parser.add_argument("--skip-ratio", action="store_true", help="do not time Table 3.2's ratio")
+    parser.add_argument("--extra", action="store_true", help="also run the EXTRA variants")
     args = parser.parse_args()
     cfg = config("ch3_qdpg", args.scale)
     cfg = dataclasses.replace(
@@ -167,6 +172,9 @@ def main() -> None:
     favoured = pick(runs)
     result["picked_for_d"] = favoured
     run(f"d-{favoured.split('-')[1]}-sum", {**VARIANTS[favoured], "novelty_reduction": "sum"})
+    if args.extra:
+        for name, overrides in EXTRA.items():
+            run(name, overrides)
     if not args.skip_ratio and "table_3_2_ratio" not in result:
         result["table_3_2_ratio"] = table_3_2_ratio(
             cfg, dataclasses.replace(base, coupling="thesis")

@@ -749,3 +749,39 @@ def test_coverage_counts_the_reachable_cells():
     filled = np.zeros((2, 25), bool)
     filled[0, :5] = True
     np.testing.assert_allclose(reachable_coverage(filled, "pointmaze", env, 5), [0.2, 0.0])
+
+
+def test_the_coupling_ab_runs_its_variants_picks_by_its_rule_and_resumes(tmp_path, monkeypatch):
+    """bench/qdpg_coupling.py at tiny: (a), (b), (c), then (d) on the variant its rule
+    picks, each on the same seeds; a second call skips what is done."""
+    import importlib.util
+    import json
+    import sys
+
+    bench = Path(__file__).parents[1] / "bench"
+    monkeypatch.syspath_prepend(str(bench))
+    spec = importlib.util.spec_from_file_location("qdpg_coupling", bench / "qdpg_coupling.py")
+    ab = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ab)
+    out = tmp_path / "ab.json"
+    argv = ["qdpg_coupling.py", "--scale", "tiny", "--steps", "1600", "--seeds", "2"]
+    monkeypatch.setattr(sys, "argv", argv + ["--skip-ratio", "--out", str(out)])
+    ab.main()
+    first = json.loads(out.read_text())
+    ab.main()
+    assert json.loads(out.read_text())["runs"] == first["runs"]
+    d = f"d-{first['picked_for_d'].split('-')[1]}-sum"
+    assert list(first["runs"]) == ["a-greedy", "b-thesis", "c-qdax", d]
+    assert first["runs"][d]["overrides"]["novelty_reduction"] == "sum"
+    for entry in first["runs"].values():
+        assert len(entry["final_performance"]) == 2
+        assert all(0 < e <= 1600 for e in entry["env_steps"])
+        shares = entry["where_episodes_end"]
+        assert all(0 <= v <= 1 for values in shares.values() for v in values)
+    fake = {
+        "b-thesis": {"reached_exit": 1, "mean_final_performance": -100.0},
+        "c-qdax": {"reached_exit": 1, "mean_final_performance": -90.0},
+    }
+    assert ab.pick(fake) == "c-qdax"  # a tie on the exit: the better mean
+    fake["b-thesis"]["reached_exit"] = 2
+    assert ab.pick(fake) == "b-thesis"

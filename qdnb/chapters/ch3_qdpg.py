@@ -32,7 +32,7 @@ from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
 from qdnb.envs.pointmaze import GOAL as POINTMAZE_GOAL
-from qdnb.envs.pointmaze import in_goal
+from qdnb.envs.pointmaze import in_goal, reachable
 from qdnb.envs.rollout import evaluate_policies
 from qdnb.nets.mlp import MLP
 from qdnb.qd.adaptation import bayes_opt, random_goals, random_search, reach_scores
@@ -59,8 +59,11 @@ class QDPGTask:
     ``num_steps`` is the environment-step budget of every method; each iteration
     plays ``num_actors`` episodes of ``episode_length`` steps at most, so a run
     has ``num_steps // (num_actors * episode_length)`` iterations.  Per
-    iteration each critic in use takes ``num_critic_steps`` TD3 steps and each
-    actor ``num_pg_steps`` actor steps; at ``paper`` scale both are Table 3.2's
+    iteration each critic in use takes ``num_critic_steps`` TD3 steps; with the
+    thesis's coupling (QD-PG and its ablations) each actor takes a step after
+    every ``policy_delay`` of them, and ``num_pg_steps`` is the actor steps of
+    the methods whose critics train apart (PGA-ME, and QD-PG's other readings in
+    ``bench/qdpg_coupling.py``); at ``paper`` scale both are Table 3.2's
     gradient-steps ratio times the episode length (4 x 200 on Point-Maze,
     0.1 x 3000 on the ants).  ``learning_rate`` drives the critics and their
     greedy actors, ``mutation_learning_rate`` the policy-gradient mutations of
@@ -484,44 +487,68 @@ def run_environment(
     have shape ``(num_seeds, num_iterations + 1, ...)``, or fewer iterations with
     ``stop_at_goal``: a method then stops after the chunk in which its last seed
     reached the goal (``until_goal``)."""
-    task = cfg.task(env_name)
     env = make_task_env(cfg, env_name)
     algorithms = build_algorithms(cfg, env_name, env, methods)
-    results: dict[str, MethodResult] = {}
-    for method, algo in algorithms.items():
-        keys = jax.random.split(key, cfg.seeds(env_name, method))
-        start, chunks = time.perf_counter(), []
-        states, _, history = run_seeds(
+    results = {
+        method: run_method(
+            cfg,
+            env_name,
+            env,
             algo,
-            keys,
-            task.num_iterations - 1,
-            cfg.chunk_size,
+            jax.random.split(key, cfg.seeds(env_name, method)),
             progress=progress,
             desc=f"{env_name} {method}",
-            chunk_seconds=chunks,
-            stop=until_goal(env_name, len(keys)) if stop_at_goal else None,
+            stop_at_goal=stop_at_goal,
         )
-        history = jax.device_get(history)
-        seconds = time.perf_counter() - start
-        steps = np.cumsum(history["env_steps"], axis=1)
-        grid = final_grid(states)
-        results[method] = MethodResult(
-            history=history,
-            grid=grid,
-            final_performance=history["max_fitness"][:, -1],
-            coverage=(
-                np.mean(grid["fitnesses"] > -np.inf, axis=1)
-                if grid is not None
-                else grid_coverage(history["descriptors"], env, task.bins)
-            ),
-            env_steps=steps[:, -1],
-            cumulative_steps=steps,
-            seconds=seconds,
-            steady_seconds_per_iteration=steady_rate(
-                chunks, cfg.chunk_size, seconds / task.num_iterations
-            ),
-        )
+        for method, algo in algorithms.items()
+    }
     return EnvironmentResult(env, env_name, results)
+
+
+def run_method(
+    cfg: QDPGConfig,
+    env_name: str,
+    env: Env,
+    algo: Algorithm,
+    keys: jax.Array,
+    progress: bool = True,
+    desc: str | None = None,
+    stop_at_goal: bool = False,
+) -> MethodResult:
+    """One algorithm on ``env_name`` for the task's budget, one seed per key (at once):
+    ``run_environment``'s entry for a method, and the benchmarks' for a variant."""
+    task = cfg.task(env_name)
+    start, chunks = time.perf_counter(), []
+    states, _, history = run_seeds(
+        algo,
+        keys,
+        task.num_iterations - 1,
+        cfg.chunk_size,
+        progress=progress,
+        desc=desc,
+        chunk_seconds=chunks,
+        stop=until_goal(env_name, len(keys)) if stop_at_goal else None,
+    )
+    history = jax.device_get(history)
+    seconds = time.perf_counter() - start
+    steps = np.cumsum(history["env_steps"], axis=1)
+    grid = final_grid(states)
+    return MethodResult(
+        history=history,
+        grid=grid,
+        final_performance=history["max_fitness"][:, -1],
+        coverage=(
+            reachable_coverage(grid["fitnesses"] > -np.inf, env_name, env, task.bins)
+            if grid is not None
+            else grid_coverage(history["descriptors"], env, task.bins, env_name)
+        ),
+        env_steps=steps[:, -1],
+        cumulative_steps=steps,
+        seconds=seconds,
+        steady_seconds_per_iteration=steady_rate(
+            chunks, cfg.chunk_size, seconds / task.num_iterations
+        ),
+    )
 
 
 def until_goal(env_name: str, num_seeds: int) -> Callable[[dict[str, Any]], bool]:
@@ -558,13 +585,41 @@ def steady_rate(chunk_seconds: list[float], chunk_size: int, fallback: float) ->
     return float(np.median(chunk_seconds[1:-1] or chunk_seconds)) / chunk_size
 
 
-def grid_coverage(descriptors: np.ndarray, env: Env, bins: int) -> np.ndarray:
-    """Fraction of the ``bins x bins`` grid cells reached by any evaluated
-    episode, per seed (``descriptors``: seeds x iterations x episodes x 2).  For
-    TD3, which keeps no grid, this is the grid it would have filled."""
+def reachable_cells(env_name: str, env: Env, bins: int) -> np.ndarray:
+    """Which cells of the ``bins x bins`` grid hold a reachable point: on Point-Maze,
+    a point of a 401 x 401 lattice of the arena outside the walls (``reachable``);
+    on the ant mazes every cell counts."""
+    if env_name != "pointmaze":
+        return np.ones(bins * bins, bool)
+    axis = np.linspace(-1.0, 1.0, 401)
+    lattice = np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2)
+    cells = grid_cell(
+        lattice[reachable(lattice)], (bins, bins), env.descriptor_low, env.descriptor_high
+    )
+    mask = np.zeros(bins * bins, bool)
+    mask[np.asarray(cells)] = True
+    return mask
+
+
+def reachable_coverage(filled: np.ndarray, env_name: str, env: Env, bins: int) -> np.ndarray:
+    """Per seed (leading axis of ``filled``, seeds x cells), the share of the grid's
+    reachable cells (``reachable_cells``) that are filled."""
+    mask = reachable_cells(env_name, env, bins)
+    return np.asarray(filled)[:, mask].mean(axis=1)
+
+
+def grid_coverage(
+    descriptors: np.ndarray, env: Env, bins: int, env_name: str = "pointmaze"
+) -> np.ndarray:
+    """The share of the ``bins x bins`` grid's reachable cells reached by any
+    evaluated episode, per seed (``descriptors``: seeds x iterations x episodes x 2).
+    For TD3, which keeps no grid, this is the grid it would have filled."""
     d = descriptors.reshape(descriptors.shape[0], -1, descriptors.shape[-1])
     cells = np.asarray(grid_cell(d, (bins, bins), env.descriptor_low, env.descriptor_high))
-    return np.array([len(np.unique(c)) / bins**2 for c in cells])
+    filled = np.zeros((len(cells), bins * bins), bool)
+    for seed, c in enumerate(cells):
+        filled[seed, c] = True
+    return reachable_coverage(filled, env_name, env, bins)
 
 
 def in_exit_zone(descriptors: np.ndarray) -> np.ndarray:
@@ -616,9 +671,9 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
     reached = pm["QD-PG"].reached_exit
     return [
         (
-            "QD-PG reaches the exit zone (every seed)",
-            bool(reached.all()),
-            f"{reached.mean():.0%} of seeds",
+            "QD-PG reaches the exit zone (most seeds)",
+            bool(reached.mean() > 0.5),
+            f"{reached.sum()} of {len(reached)} seeds",
         ),
         (
             "QD-PG beats TD3 on final performance (mean and most seeds)",
@@ -631,7 +686,7 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
             f"{per_seed(perf('QD-PG'))} vs {per_seed(perf('Q-PG'))}",
         ),
         (
-            "D-PG explores: covers more of the grid than Q-PG and TD3",
+            "D-PG explores: covers more reachable cells than Q-PG and TD3",
             cov("D-PG") > max(cov("Q-PG"), cov("TD3")),
             f"{cov('D-PG'):.2f} vs {cov('Q-PG'):.2f} (Q-PG), {cov('TD3'):.2f} (TD3)",
         ),
@@ -928,15 +983,16 @@ SCALES = {
     ),
     # small Point-Maze: Table 3.2's networks, minibatch, K, grid and archive (threshold 1e-4, 10,000
     # FIFO slots), with N = 8 actors per iteration: bench/qdpg_sweep.py's pick, variant
-    # "table-3.2+actors-8" (round 2); 100 gradient steps per iteration and Adam at QDax's rates per
-    # role; the largest equal budget for six methods, in steps of 1e5, that fits the notebook's
-    # time on 2 cores (about 15 min), measured: see the notebook's small-rule cell (issue 14);
-    # QD-PG on Point-Maze on 2 seeds, the other methods on 1.
+    # "table-3.2+actors-8" (round 2); 100 critic steps per iteration (50 actor steps per mutation
+    # in the thesis's coupling) and Adam at QDax's rates per role; the largest equal budget for six
+    # methods, in steps of 1e5, that fits the notebook's time on 2 cores (about 15 min): 3e5 took
+    # 806 s with every core (issue 35; the notebook's small-rule cell); QD-PG on Point-Maze on 4
+    # seeds, the other methods on 2 (seed-split methods: a second seed costs no wall time).
     "small": QDPGConfig(
-        num_seeds=1,
+        num_seeds=2,
         chunk_size=10,
         ant_methods=("QD-PG", "TD3"),
-        pointmaze_qdpg_seeds=2,
+        pointmaze_qdpg_seeds=4,
         pointmaze=dataclasses.replace(
             POINTMAZE_PAPER,
             num_steps=300_000,

@@ -253,10 +253,14 @@ class QDPG(PolicyMapElites):
         batches = jax.tree.map(lambda x: x.reshape((steps, n, cfg.batch_size) + x.shape[1:]), rows)
         batches = {**batches, "reward": self.actor_rewards(state.archive, batches, diversity)}
         # each critic's share of the actors' gradients: the mean over the actors it drives
-        count = lambda mask: jnp.sum(mask)
-        w_q = ~diversity / jnp.maximum(count(~diversity), 1)
-        w_d = diversity / jnp.maximum(count(diversity), 1)
+        w_q = ~diversity / jnp.maximum(jnp.sum(~diversity), 1)
+        w_d = diversity / jnp.maximum(jnp.sum(diversity), 1)
         opt = td3.mutation_optimizer
+
+        def moved(critic: TD3State, weights: jax.Array, grads: Any) -> TD3State:
+            """One step on the weighted actors' gradients; unchanged if it drives none."""
+            new = td3.apply_critic_grads(critic, weighted_sum(weights, grads))
+            return jax.tree.map(lambda a, b: jnp.where(jnp.any(weights > 0), a, b), new, critic)
 
         def critic_step(carry, inputs):
             q, d, actors, targets, opts = carry
@@ -264,17 +268,7 @@ class QDPG(PolicyMapElites):
             critics = pick(diversity, d.critic, q.critic)
             critic_targets = pick(diversity, d.critic_target, q.critic_target)
             _, grads = jax.vmap(td3.critic_grads)(critics, critic_targets, targets, batch, keys)
-            q = jax.tree.map(
-                lambda new, old: jnp.where(count(~diversity) > 0, new, old),
-                td3.apply_critic_grads(q, weighted_sum(w_q, grads)),
-                q,
-            )
-            d = jax.tree.map(
-                lambda new, old: jnp.where(count(diversity) > 0, new, old),
-                td3.apply_critic_grads(d, weighted_sum(w_d, grads)),
-                d,
-            )
-            return (q, d, actors, targets, opts), None
+            return (moved(q, w_q, grads), moved(d, w_d, grads), actors, targets, opts), None
 
         def actor_step(carry, obs):
             q, d, actors, targets, opts = carry
