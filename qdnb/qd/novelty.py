@@ -131,8 +131,8 @@ class NoveltyArchive:
         iteration at once); more than ``chunk`` queries are scored ``chunk`` at
         a time, which bounds the distance matrix in memory and changes no value.
         A chunk's distances to 10,000 entries (5 MB at 128) stay in the caches:
-        on 2 cores, 102,400 queries took 1.05 s at 128 against 1.67 s at 1,024
-        (32 and 64: 0.93 and 1.00 s, within this probe's noise).
+        one iteration's 102,400 queries per device, on 2 cores with 2 devices,
+        took 0.48 s at 128 against 0.72 s at 1,024 (64: 0.47 s; ``bench/knn.py``).
         """
         score = lambda q: knn_novelty(q, self.data, k, self.valid, reduction=reduction)
         lead, dim = queries.shape[:-1], queries.shape[-1]
