@@ -222,19 +222,15 @@ class QDPG(PolicyMapElites):
         update, fresh novelty rewards for a diversity update, their sum for QD-PG
         Sum.  Novelty is computed only for the actors that use it (with
         ``"alternate"``, the ``actors // 2`` of ``diversity``)."""
+        if self.update != "alternate":  # every actor's batches train the same critic
+            return self.critic_rewards(archive, batches, self.update)
+        # update_kinds gives exactly n // 2 diversity actors: their columns, first
         reward = batches["reward"]
-        n = reward.shape[1]
-        if self.update == "quality":
-            return reward
-        if self.update == "alternate":
-            # update_kinds gives exactly n // 2 diversity actors: their columns, first
-            columns = jnp.argsort(~diversity, stable=True)[: n // 2]
-            novelty = self.novelty_reward(
-                archive, {"state_descriptor": batches["state_descriptor"][:, columns]}
-            )
-            return reward.at[:, columns].set(novelty)
-        novelty = self.novelty_reward(archive, batches)
-        return novelty if self.update == "diversity" else reward + novelty
+        columns = jnp.argsort(~diversity, stable=True)[: reward.shape[1] // 2]
+        novelty = self.novelty_reward(
+            archive, {"state_descriptor": batches["state_descriptor"][:, columns]}
+        )
+        return reward.at[:, columns].set(novelty)
 
     def coupled_updates(
         self, state: QDPGState, parents: Any, diversity: jax.Array, key: jax.Array
@@ -314,14 +310,12 @@ class QDPG(PolicyMapElites):
         """``num_pg_steps`` TD3 actor steps for every parent, each against the
         critic its update kind names (the critics do not change)."""
         td3 = self.td3
+        critics = pick(diversity, state.d_critic.critic, state.q_critic.critic)
 
-        def one(actor, use_d, k):
-            critic = jax.tree.map(
-                lambda q, d: jnp.where(use_d, d, q), state.q_critic.critic, state.d_critic.critic
-            )
+        def one(actor, critic, k):
             return td3.policy_gradient_steps(actor, critic, state.buffer, k, self.num_pg_steps)
 
-        return jax.vmap(one)(parents, diversity, jax.random.split(key, diversity.shape[0]))
+        return jax.vmap(one)(parents, critics, jax.random.split(key, diversity.shape[0]))
 
     def greedy_actors(self, state: QDPGState) -> Any:
         """The greedy actors of the critics in use, stacked (``"qdax"`` plays them)."""
