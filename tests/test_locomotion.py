@@ -54,20 +54,69 @@ def test_ant_omni_descriptor_and_fitness(ant):
 def test_halfcheetah_contacts_are_real(cheetah):
     step = jax.jit(cheetah.step)
     sys = cheetah.brax_env.sys
-    still = cheetah.reset(jax.random.PRNGKey(0)).replace(
-        core=cheetah.brax_env.pipeline_init(sys.init_q, jnp.zeros(sys.qd_size()))
-    )
-    for _ in range(20):  # let it settle on the ground with no torque
+    still = cheetah.reset(jax.random.PRNGKey(0))
+    for _ in range(20):  # let it settle on the ground with no torque: it rests on its back foot
         still = step(still, jnp.zeros(cheetah.action_size))
-    np.testing.assert_array_equal(still.state_descriptor, [1.0, 1.0])
+    np.testing.assert_array_equal(still.state_descriptor, [0.0, 1.0])
 
-    lifted_q = sys.init_q.at[1].add(1.0)  # root z one metre up
+    lifted_q = still.core.q.at[1].add(1.0)  # root z one metre up
     air = still.replace(core=cheetah.brax_env.pipeline_init(lifted_q, jnp.zeros(sys.qd_size())))
     air = step(air, jnp.zeros(cheetah.action_size))
     np.testing.assert_array_equal(air.state_descriptor, [0.0, 0.0])
 
 
-def test_halfcheetah_descriptor_is_the_fraction_of_steps_in_contact(cheetah):
+def test_a_foot_that_touches_only_mid_step_touched_in_that_step():
+    from qdnb.envs.locomotion import touched_in_step
+
+    # 16 substeps, feet (front, back): the front foot touches in substeps 6 to 8 only, the
+    # back foot never; read at the step's end (the last substep), neither would touch
+    trace = np.zeros((16, 2), np.float32)
+    trace[6:9, 0] = 1.0
+    np.testing.assert_array_equal(touched_in_step(jnp.asarray(trace)), [1.0, 0.0])
+    np.testing.assert_array_equal(trace[-1], [0.0, 0.0])
+    np.testing.assert_array_equal(touched_in_step(jnp.ones((16, 2))), [1.0, 1.0])
+
+
+def test_halfcheetah_reads_contacts_in_every_substep_as_the_simulator_sees_them(cheetah):
+    """The step's contacts are the OR of brax's own contact distances (``contact.get``)
+    at the start of each substep, and catch touches that the state at the step's end
+    does not show."""
+    from brax import contact
+
+    sys, pipeline = cheetah.brax_env.sys, cheetah.brax_env._pipeline
+    feet = cheetah._feet
+    state = cheetah.reset(jax.random.PRNGKey(2))
+    act = jax.random.uniform(jax.random.PRNGKey(3), (40, cheetah.action_size), minval=-1, maxval=1)
+
+    @jax.jit
+    def substep(ps, action):  # brax's contacts at the substep's start, then the substep
+        c = contact.get(sys, ps.x)
+        touching = [jnp.any((c.dist < 0) & ((c.geom1 == g) | (c.geom2 == g))) for g in feet]
+        return jnp.stack(touching), pipeline.step(sys, ps, action)
+
+    def by_hand(ps, action):  # substep by substep
+        touching = []
+        for _ in range(cheetah.brax_env._n_frames):
+            touched, ps = substep(ps, action)
+            touching.append(np.asarray(touched))
+        return np.any(touching, axis=0), ps
+
+    step = jax.jit(cheetah.step)
+    mid_step_only = 0
+    for action in act:
+        expected, ps = by_hand(state.core, action)
+        state = step(state, action)
+        np.testing.assert_array_equal(state.state_descriptor, expected.astype(np.float32))
+        np.testing.assert_allclose(state.core.x.pos, ps.x.pos, atol=1e-5)
+        at_end = np.asarray(cheetah.foot_contacts(state.core))
+        assert np.all(at_end <= state.state_descriptor + 1.0)  # sanity of the 0/1 values
+        mid_step_only += int(np.sum((state.state_descriptor == 1.0) & (at_end == 0.0)))
+    assert mid_step_only > 0
+
+
+def test_halfcheetah_descriptor_averages_the_states_each_step_starts_from(cheetah):
+    """QDax's window: the reset state's contacts and those of the steps but the last."""
+
     def policy(params, obs):
         del obs
         return params * jnp.ones(cheetah.action_size)
@@ -78,8 +127,30 @@ def test_halfcheetah_descriptor_is_the_fraction_of_steps_in_contact(cheetah):
     assert ev.descriptor.shape == (2, 2)
     assert np.all((ev.descriptor >= 0) & (ev.descriptor <= 1))
     np.testing.assert_allclose(
-        ev.descriptor, np.asarray(ev.trajectory["next_state_descriptor"]).mean(axis=1), rtol=1e-6
+        ev.descriptor, np.asarray(ev.trajectory["state_descriptor"]).mean(axis=1), rtol=1e-6
     )
+
+
+def test_the_models_collide_and_start_as_brax_v1s(ant, cheetah):
+    import mujoco
+
+    def names(env, geoms):
+        model = env.brax_env.sys.mj_model
+        return {mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(g)) for g in geoms}
+
+    from qdnb.envs.locomotion import floor_colliders
+
+    assert names(cheetah, floor_colliders(cheetah.brax_env.sys.mj_model)) == {
+        "torso", "head", "bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot"
+    }  # fmt: skip
+    assert names(ant, floor_colliders(ant.brax_env.sys.mj_model)) == {
+        "torso_geom", "left_foot_geom", "right_foot_geom", "third_foot_geom", "fourth_foot_geom"
+    }  # fmt: skip
+    np.testing.assert_array_equal(cheetah.brax_env.sys.actuator.gear, [120, 90, 60, 120, 60, 30])
+    for env in (ant, cheetah):  # every reset rests on the floor
+        states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 32))
+        lowest = jax.vmap(env.lowest_point)(states.core.q)
+        np.testing.assert_allclose(lowest, 0.0, atol=1e-5)
 
 
 def test_halfcheetah_reward_is_forward_speed_minus_action_norm(cheetah):
@@ -153,9 +224,10 @@ def test_resets_follow_brax_v1_uniform_joint_noise_with_the_root_at_rest(ant, ch
     for env, root_q, root_qd in ((ant, 7, 6), (cheetah, 3, 3)):
         sys = env.brax_env.sys
         states = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 256))
-        dq = np.asarray(states.core.q) - np.asarray(sys.init_q)
+        dq = np.asarray(states.core.q) - np.asarray(env._rest_q)
         qd = np.asarray(states.core.qd)
-        np.testing.assert_allclose(dq[:, :root_q], 0.0, atol=1e-6)
+        # the root at rest: only its height moves (to rest on the floor)
+        np.testing.assert_allclose(np.delete(dq[:, :root_q], env.root_z, axis=1), 0.0, atol=1e-6)
         np.testing.assert_allclose(qd[:, :root_qd], 0.0, atol=1e-6)
         for x in (dq[:, root_q:], qd[:, root_qd:]):
             assert np.all(np.abs(x) <= 0.1 + 1e-6)
@@ -163,6 +235,12 @@ def test_resets_follow_brax_v1_uniform_joint_noise_with_the_root_at_rest(ant, ch
             assert (
                 abs(np.mean(np.abs(x)) - 0.05) < 0.005
             )  # ... and E|U| = 0.05 (a Gaussian of sd 0.1 gives 0.08)
+        # brax v1's default angles: the middle of each limited hinge's range
+        model = sys.mj_model
+        hinges = (model.jnt_type == 3) & (model.jnt_limited != 0)
+        np.testing.assert_allclose(
+            env._rest_q[model.jnt_qposadr[hinges]], model.jnt_range[hinges].mean(1), rtol=1e-6
+        )
 
 
 def test_ant_omni_observes_neither_x_nor_y(ant):

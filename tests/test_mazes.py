@@ -69,7 +69,11 @@ def test_walls_only_add_torso_and_lower_leg_contacts(maze, trap):
         sys = env.brax_env.sys
         return lambda q: contact.get(sys, env.brax_env.pipeline_init(q, jnp.zeros(sys.qd_size())).x)
 
-    bare = make_env("ant_omni")
+    from types import SimpleNamespace
+
+    from qdnb.envs.locomotion import _brax_env
+
+    bare = SimpleNamespace(brax_env=_brax_env("ant", "spring"))  # brax's own Ant
     # one contact per colliding pair: 4 foot-floor pairs, then 5 per wall
     counts = [
         jax.eval_shape(contacts(e), e.brax_env.sys.init_q).dist.shape[0] for e in (bare, maze, trap)

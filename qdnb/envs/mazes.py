@@ -61,10 +61,8 @@ otherwise, so dt = 0.05 either way).
 
 from __future__ import annotations
 
-import importlib.util
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
-from pathlib import Path
 from typing import ClassVar
 
 import jax
@@ -72,7 +70,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.envs.base import EnvState
-from qdnb.envs.locomotion import BraxTask, _brax_env, _quiet, brax_observation_size
+from qdnb.envs.locomotion import (
+    BraxTask,
+    brax_asset,
+    brax_env_from_xml,
+    brax_observation_size,
+    with_collision_bits,
+)
 
 Point = tuple[float, float]
 Segment = tuple[Point, Point]
@@ -106,22 +110,14 @@ ANTTRAP_WALLS: tuple[Segment, ...] = (
 )
 
 
-def _brax_asset(name: str) -> Path:
-    """Path of one of brax's model files, found without importing brax (whose
-    import prints notices)."""
-    return Path(importlib.util.find_spec("brax").origin).parent / "envs" / "assets" / name
-
-
 def ant_xml_with_walls(walls: tuple[Segment, ...]) -> str:
     """Brax's ant.xml with one capsule geom per wall segment in its worldbody, and
     the contype/conaffinity bits that make walls collide with the torso and the
     lower legs only."""
-    root = ElementTree.fromstring(_brax_asset("ant.xml").read_text())
-    colliders = {g.get("name"): g for g in root.iter("geom") if g.get("name") in WALL_COLLIDERS}
-    if len(colliders) != len(WALL_COLLIDERS):
-        raise ValueError(f"brax's ant.xml lacks some of the geoms {WALL_COLLIDERS}")
-    for geom in colliders.values():
-        geom.set("contype", str(int(geom.get("contype", "0")) | WALL_CONAFFINITY))
+    xml = with_collision_bits(
+        brax_asset("ant.xml").read_text(), {name: WALL_CONAFFINITY for name in WALL_COLLIDERS}, {}
+    )
+    root = ElementTree.fromstring(xml)
     worldbody = root.find("worldbody")
     for i, ((x0, y0), (x1, y1)) in enumerate(walls):
         ElementTree.SubElement(
@@ -150,21 +146,15 @@ def brax_ant_with_walls(walls: tuple[Segment, ...], backend: str = "spring"):
     Brax's observation, ``n_frames`` and pipeline are kept; its reward and
     termination are not used.
     """
-    env = _brax_env(
+    return brax_env_from_xml(
         "ant",
         backend,
+        ant_xml_with_walls(walls),
         exclude_current_positions_from_observation=True,
         terminate_when_unhealthy=False,
         healthy_reward=0.0,
         ctrl_cost_weight=0.0,
     )
-    xml = ant_xml_with_walls(walls)
-    with _quiet():
-        from brax.io import mjcf
-
-        sys = mjcf.loads(xml)
-    env.sys = sys.tree_replace({"opt": env.sys.opt, "actuator": env.sys.actuator})
-    return env
 
 
 @dataclass(frozen=True, eq=False)

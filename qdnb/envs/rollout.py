@@ -96,8 +96,11 @@ def evaluate_policies(
 @struct.dataclass
 class Tally:
     """What one episode accumulates while it plays: whether it is still
-    ``alive`` (not yet done), its fitness so far, its length, and the sum and
-    the last of its state descriptors (for ``env.behaviour_descriptor``)."""
+    ``alive`` (not yet done), its fitness so far, its length, and, for
+    ``env.behaviour_descriptor``, the last of its state descriptors and the sum of
+    those of the states its steps started from: QDax's window for time-averaged
+    descriptors (its transitions carry the state before the step), the reset
+    state included and the final state not."""
 
     alive: jax.Array
     fitness: jax.Array
@@ -132,7 +135,7 @@ def tally_step(env: Env, tally: Tally, nxt: EnvState) -> tuple[Tally, jax.Array]
         alive=alive & ~nxt.done,
         fitness=fitness,
         length=tally.length + alive,
-        sd_sum=tally.sd_sum + jnp.where(alive, nxt.state_descriptor, 0.0),
+        sd_sum=tally.sd_sum + jnp.where(alive, tally.last_sd, 0.0),
         last_sd=jnp.where(alive, nxt.state_descriptor, tally.last_sd),
     ), reward
 

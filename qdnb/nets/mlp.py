@@ -1,5 +1,10 @@
 """Neural networks: deterministic MLP policies with tanh outputs, and a tanh-squashed
-Gaussian policy for the stochastic agents of Chapter 3."""
+Gaussian policy for the stochastic agents of Chapter 3.
+
+The policies' hidden layers use relu, QDax's MLP default, wherever the thesis is
+silent on them: the primer's Point-Maze policies (Chapter 2), QD-PG and its
+baselines (Chapter 3), and Chapter 4's repertoires (ME, ME-LS, PGA-ME,
+PGA-ME-LS, ME-Sampling), which the QDT distils."""
 
 from __future__ import annotations
 
@@ -11,10 +16,11 @@ import jax.numpy as jnp
 
 
 class MLP(nn.Module):
-    """A multilayer perceptron; ``tanh`` on the output keeps actions in [-1, 1]."""
+    """A multilayer perceptron: relu hidden layers (QDax's default) and ``tanh`` on
+    the output, which keeps actions in [-1, 1]."""
 
     layer_sizes: Sequence[int]
-    activation: str = "tanh"
+    activation: str = "relu"
     final_activation: str | None = "tanh"
 
     @nn.compact
