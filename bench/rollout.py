@@ -17,6 +17,7 @@ import jax
 
 from qdnb.book.provenance import device, versions
 from qdnb.core.io import atomic_write_json
+from qdnb.core.sharding import shard_batch
 from qdnb.envs import make_env
 from qdnb.envs.rollout import evaluate_policies
 from qdnb.nets.mlp import MLP, init_policies
@@ -28,6 +29,7 @@ def bare_scan(env, network):
 
     def run(params, key):
         states = jax.vmap(env.reset)(jax.random.split(key, jax.tree.leaves(params)[0].shape[0]))
+        params, states = shard_batch((params, states))  # over every device, as the QD loops
 
         def step(s, _):
             s = jax.vmap(env.step)(s, jax.vmap(network.apply)(params, s.obs))

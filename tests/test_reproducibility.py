@@ -155,7 +155,8 @@ def test_cells_for_coverage_takes_the_largest_count_that_fills():
         ),  # the second method misses 0.8 on the mean
         128: np.array([[0.5, 0.5, 0.5], [0.3, 0.3, 0.3]]),
     }
-    assert cells_for_coverage(coverage) == 32
+    assert cells_for_coverage(coverage, target=0.8) == 32
+    assert cells_for_coverage(coverage) == 64  # the default: 60 % for every method
     assert cells_for_coverage(coverage, target=0.7) == 64
     assert cells_for_coverage(coverage, target=0.95) == 32  # none fills: the smallest count
 

@@ -96,6 +96,27 @@ def _backends_started() -> bool:
         return False
 
 
+# XLA's CPU fusion emitters off: Chapter 4's Brax loops run about 1.2x faster on 2 cores
+# (bench/qd_throughput.py: ME on Ant-Omni 65.7k against 53.8k env steps/s, Halfcheetah-Uni
+# 31.6k against 29.9k), but the QDT's cached rollouts ran 1.75x slower (bench/qdt.py: 0.25
+# against 0.14 s) and one Flow Lenia episode 1.3x slower (bench/flow_lenia.py, batch 1), so
+# it is no default: the Chapter 4 reproducibility notebook and its benchmarks ask for it.
+BRAX_CPU_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+
+
+def add_xla_flags(flags: tuple[str, ...], environ: dict[str, str] | None = None) -> bool:
+    """Append ``flags`` to ``XLA_FLAGS`` (``os.environ`` by default), each unless the
+    user already set that option; XLA reads them when JAX starts its backends, so
+    after that nothing changes and this returns ``False``."""
+    env = os.environ if environ is None else environ
+    if environ is None and _backends_started():
+        return False
+    current = env.get("XLA_FLAGS", "").split()
+    names = {f.split("=")[0] for f in current}
+    env["XLA_FLAGS"] = " ".join(current + [f for f in flags if f.split("=")[0] not in names])
+    return True
+
+
 def plan_host_devices(environ: dict[str, str]) -> tuple[dict[str, Any], str]:
     """What a process about to start with ``environ`` gets: how its host device count
     is chosen (``{"requested", "chosen_by"}``) and the ``XLA_FLAGS`` that ask for it.
