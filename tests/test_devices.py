@@ -66,6 +66,21 @@ def test_a_child_process_chooses_again_instead_of_inheriting_qdnbs_flag():
     assert sharding.configure_host_devices(forced)["requested"] == 4  # the user's count wins
 
 
+def test_chapter_xla_flags_are_added_unless_the_user_set_that_option():
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert sharding.add_xla_flags(sharding.BRAX_CPU_FLAGS, env)
+    assert env["XLA_FLAGS"].split() == [
+        "--xla_force_host_platform_device_count=2",
+        "--xla_cpu_use_fusion_emitters=false",
+    ]
+    mine = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}
+    sharding.add_xla_flags(sharding.BRAX_CPU_FLAGS, mine)
+    assert mine["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"  # the user's choice stays
+    empty: dict[str, str] = {}
+    sharding.add_xla_flags(sharding.BRAX_CPU_FLAGS, empty)
+    assert empty["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=false"
+
+
 def test_with_device_count_replaces_any_earlier_count():
     flags = f"--a=1 {FLAG}=2 --b=2"
     assert sharding.with_device_count(flags, 4) == f"--a=1 --b=2 {FLAG}=4"
