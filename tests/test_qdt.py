@@ -617,3 +617,16 @@ def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, mo
     assert (
         set(status["ant_omni"].values()) == {"loaded"} and len(calls) == 1
     )  # saved the first time
+
+
+def test_a_qdt_with_no_data_is_recorded_as_untrained_beside_trained_ones():
+    from qdnb.chapters.ch4_qdt import QDTRun, untrained_run
+
+    cfg = config("ch4_qdt", "tiny")
+    empty = untrained_run(cfg, num_goals=5)
+    trained = dict(empty, avg_distance=0.3, distance=np.full(5, 0.3), dataset_size=12)
+    trained["best_epoch"] = cfg.epochs
+    run = QDTRun.stack([trained, empty])  # the same shapes: seeds stack
+    assert run.distance.shape == (2, 5) and run.loss.shape == (2, cfg.epochs)
+    assert np.isnan(run.avg_distance[1]) and run.dataset_size[1] == 0
+    assert not np.isnan(run.avg_distance[0])
