@@ -44,6 +44,11 @@ ENV_LABELS = {
     "ant_omni": "Ant-Omni",
     "halfcheetah_uni": "Halfcheetah-Uni",
 }
+# What each axis of an environment's behaviour descriptor measures (QDax's order for the feet)
+DESCRIPTOR_LABELS = {
+    "ant_omni": ("final x (m)", "final y (m)"),
+    "halfcheetah_uni": ("front foot: share of steps on the ground", "back foot: share of steps"),
+}
 
 
 def method_color(name: str) -> str:
