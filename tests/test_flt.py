@@ -4,6 +4,7 @@ step lowering the loss, determinism, the surprise-search descriptors on
 hand-made patterns, and config errors.  A 16x16 world with 2 kernels keeps it fast."""
 
 import dataclasses
+import time
 
 import jax
 import jax.numpy as jnp
@@ -145,9 +146,11 @@ def test_training_is_deterministic_and_tracks_the_mean_frame(system):
 def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
     model, params = model_params
     mean_frames = np.zeros((WORLD.steps + 1, 16, 16, 1 + WORLD.kernels), np.float32)
+    began = time.perf_counter()
     out = evaluate(
         model, params, WORLD, system, mean_frames, jax.random.PRNGKey(3), episodes=5, batch=2
     )
+    assert 0.0 < out.seconds <= time.perf_counter() - began  # its own wall time, nothing else
     for name in ("flt", "persistence", "mean_frame"):
         assert out.errors[name]["A"].shape == (5, WORLD.steps)
     truth = out.truth  # the first three episodes

@@ -395,8 +395,8 @@ def evaluate(
         "flt_teacher_forced": [],
     }
     truth_kept, flt_kept, drifts = [], [], []
-    for i, start in enumerate(range(0, episodes, batch)):
-        n = min(batch, episodes - start)
+    for i, first in enumerate(range(0, episodes, batch)):  # ``first``: not the timer's ``start``
+        n = min(batch, episodes - first)
         truth = fl.frames(fl.simulate_system(system, jax.random.fold_in(key, i), world, batch))[:n]
         drifts.append(np.asarray(fl.mass_drift(truth[..., :1])))
         later = truth[:, 1:]
