@@ -96,11 +96,12 @@ def _backends_started() -> bool:
         return False
 
 
-# XLA's CPU fusion emitters off: Chapter 4's Brax loops run about 1.2x faster on 2 cores
-# (bench/qd_throughput.py: ME on Ant-Omni 65.7k against 53.8k env steps/s, Halfcheetah-Uni
-# 31.6k against 29.9k), but the QDT's cached rollouts ran 1.75x slower (bench/qdt.py: 0.25
-# against 0.14 s) and one Flow Lenia episode 1.3x slower (bench/flow_lenia.py, batch 1), so
-# it is no default: the Chapter 4 reproducibility notebook and its benchmarks ask for it.
+# XLA's CPU fusion emitters off: Chapter 4's Brax loops run faster on 2 cores
+# (bench/qd_throughput.py: ME on Ant-Omni 68.9k against 57.6k env steps/s, 1.2x;
+# Halfcheetah-Uni 34.7k against 32.0k, 1.08x), but the QDT's cached rollouts ran 1.75x
+# slower (bench/qdt.py: 0.25 against 0.14 s) and one Flow Lenia episode 1.3x slower
+# (bench/flow_lenia.py, batch 1), so it is no default: the Chapter 4 reproducibility
+# notebook and its benchmarks ask for it.
 BRAX_CPU_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 
 

@@ -181,6 +181,7 @@ def geom_bottoms(mj_model, geoms: np.ndarray, x) -> jax.Array:
 
     link = mj_model.geom_bodyid[geoms] - 1  # brax's links are the bodies but the world
     half = np.where(mj_model.geom_type[geoms] == 3, mj_model.geom_size[geoms, 1], 0.0)
+    # the capsule's axis (its local z) in its body's frame, on the host in float64
     local_axis = np.stack(
         [_rotate_np(np.array([0.0, 0.0, 1.0]), q) for q in mj_model.geom_quat[geoms]]
     )
@@ -191,7 +192,8 @@ def geom_bottoms(mj_model, geoms: np.ndarray, x) -> jax.Array:
 
 
 def _rotate_np(v: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``v`` rotated by the unit quaternion ``q`` = (w, x, y, z)."""
+    """``v`` rotated by the unit quaternion ``q`` = (w, x, y, z) (``brax.math.rotate``
+    in numpy's float64, for constants of the model)."""
     w, u = q[0], q[1:]
     return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
@@ -239,18 +241,23 @@ class BraxTask(Env):
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         action = jnp.clip(action, -1.0, 1.0)
-        return self._next_state(state, self.brax_env.pipeline_step(state.core, action), action)
+        pipeline_state = self.brax_env.pipeline_step(state.core, action)
+        return self._next_state(
+            state, pipeline_state, action, self._state_descriptor(pipeline_state)
+        )
 
-    def _next_state(self, state: EnvState, pipeline_state, action: jax.Array) -> EnvState:
+    def _next_state(
+        self, state: EnvState, pipeline_state, action: jax.Array, state_descriptor: jax.Array
+    ) -> EnvState:
         """The state after one step of ``action`` from ``state`` led the simulator
-        to ``pipeline_state``."""
+        to ``pipeline_state``, with the step's ``state_descriptor``."""
         steps = state.steps + 1
         return EnvState(
             core=pipeline_state,
             obs=self._obs(pipeline_state),
             reward=self._reward(state.core, pipeline_state, action),
             done=steps >= self.episode_length,
-            state_descriptor=self._state_descriptor(pipeline_state),
+            state_descriptor=state_descriptor,
             steps=steps,
         )
 
@@ -430,8 +437,7 @@ class HalfcheetahUni(QDaxReset, BraxTask):
         pipeline_state, touching = jax.lax.scan(
             substep, state.core, None, length=self.brax_env._n_frames
         )
-        nxt = self._next_state(state, pipeline_state, action)
-        return nxt.replace(state_descriptor=touched_in_step(touching))
+        return self._next_state(state, pipeline_state, action, touched_in_step(touching))
 
     def _state_descriptor(self, pipeline_state) -> jax.Array:
         return self.foot_contacts(pipeline_state)  # a reset state: its contacts now
