@@ -58,6 +58,8 @@ def test_the_summary_lists_every_baseline_on_every_environment():
     result = hand_made([-24.0], {n: [-50.0] for n in BASELINES}, ant_methods=("SAC",))
     out = ch3_baselines.summary_results(cfg, result)
     assert out["claims_total"] == 6 and out["claims_held"] == 6
+    assert [c["id"] for c in out["claims"]] == [f"ch3_baselines/{n}" for n in BASELINES]
+    assert all(c["status"] == "holds" and "-24.0 vs -50.0" in c["numbers"] for c in out["claims"])
     assert out["qdpg_source"] == {e: "loaded" for e in ENVIRONMENTS}
     for env_name in ENVIRONMENTS:
         assert set(out[env_name]) == {"QD-PG", *BASELINES}

@@ -84,6 +84,15 @@ def test_the_summary_lists_every_method_on_both_environments():
     es = {"ME-ES": [400.0], "NSR-ES": [None], "NSRA-ES": [None]}
     out = ch3_evolution.summary_results(cfg, hand_made([None], es))
     assert out["claims_total"] == 1 and out["claims_held"] == 0
+    # QD-PG never reached the goal: the claim, about steps to the goal, cannot show
+    (claim,) = out["claims"]
+    assert claim["id"] == "ch3_evolution/sample_efficiency" and claim["status"] == "cannot show"
+    assert out["headline"].startswith("cannot show:")
+    never = {"ME-ES": [None], "NSR-ES": [None], "NSRA-ES": [None]}
+    reached = ch3_evolution.summary_results(cfg, hand_made([100.0], never))
+    assert reached["claims"][0]["status"] == "holds"  # the ES methods never reach it
+    slow = ch3_evolution.summary_results(cfg, hand_made([100.0], es))
+    assert slow["claims"][0]["status"] == "fails"  # ME-ES did, not 10x slower
     for env_name in ENVIRONMENTS:
         assert set(out[env_name]) == {"QD-PG", *EVOLUTION}
         assert out[env_name]["ME-ES"]["ran"] and out[env_name]["ME-ES"]["ratio_to_qdpg"] is None

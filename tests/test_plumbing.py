@@ -239,7 +239,7 @@ def test_thesis_tables_are_transcribed():
         thesis.comparison([{"quantity": "x"}])
 
 
-def test_progress_bars_are_tidied_to_their_last_state(tmp_path):
+def test_progress_bars_leave_the_page_and_the_rest_stays(tmp_path):
     nb = nbformat.v4.new_notebook()
     nb.cells = [nbformat.v4.new_code_cell("x")]
     nb.cells[0].outputs = [
@@ -252,10 +252,7 @@ def test_progress_bars_are_tidied_to_their_last_state(tmp_path):
     nbformat.write(nb, path)
     runner.tidy_streams(path)
     outputs = nbformat.read(path, as_version=4).cells[0].outputs
-    assert [(o.name, o.text) for o in outputs] == [
-        ("stderr", "GA: 100%| 10/10\n"),
-        ("stdout", "done\n"),
-    ]
+    assert [(o.name, o.text) for o in outputs] == [("stdout", "done\n")]
 
 
 def test_pages_with_warnings_or_machine_paths_are_refused(tmp_path):
@@ -333,5 +330,35 @@ def test_the_notebooks_progress_bars_stream_to_the_terminal(tmp_path, capfd):
     )
     assert "inner loop: 100%" in capfd.readouterr().err  # live, in the terminal
     runner.tidy_streams(out)
-    kept = nbformat.read(out, as_version=4).cells[-1].outputs
-    assert len(kept) == 1 and kept[0]["text"].count("inner loop") == 1  # once on the page
+    assert nbformat.read(out, as_version=4).cells[-1].outputs == []  # never on the page
+
+
+def test_the_page_keeps_a_cells_text_and_drops_its_bars_and_notices():
+    bars = [
+        "ant_omni seed 0 QDT(ME): 100%|██████████| 2/2 [00:08<00:00,  4.46s/it, loss=0.48]",
+        "halfcheetah_uni seed 0 QDT(ME):   0%|          | 0/2 [00:00<?, ?it/s]",
+        "ant_omni seed 0 QDT(ME-LS, 50%):   0%|          | 0/2 [00:00<?, ?it/s]\x1b[A",
+        "MAP-Elites: 100%|##########| 16/16 [01:23<00:00]",
+        "checkpoints: starting afresh: 23 earlier checkpoint directories of this run removed",
+        "   ",
+    ]
+    assert not any(runner.page_line(line) for line in bars)
+    for text in ("Ant-Omni: 16 cells, 50% kept", "loss | 0.48", "done in 12 s (100%)"):
+        assert runner.page_line(text)
+
+
+def test_a_claim_record_says_holds_fails_or_cannot_show():
+    from qdnb.core import claims
+
+    assert claims.record("x/a", "A beats B", True, "2 vs 1")["status"] == "holds"
+    assert claims.record("x/a", "A beats B", False, "1 vs 2")["status"] == "fails"
+    shown = claims.record("x/b", "A is faster", "cannot show", "A never reached the goal")
+    assert shown == {
+        "id": "x/b",
+        "claim": "A is faster",
+        "status": "cannot show",
+        "numbers": "A never reached the goal",
+    }
+    assert claims.held([shown, claims.record("x/a", "A beats B", True, "")]) == 1
+    with pytest.raises(ValueError, match="holds, fails, cannot show"):
+        claims.record("x/a", "A beats B", "maybe", "")

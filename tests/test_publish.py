@@ -132,12 +132,15 @@ def test_an_imported_page_opens_with_its_banner_and_the_status_says_imported(run
     page = tmp_path / "page.ipynb"
     runner.copy_page("ch2_primer", "tiny", page)
     cells = nbformat.read(page, as_version=4).cells
-    assert cells[0].source == "# The title" and "A published run, imported" in cells[1].source
-    assert "imported: ran on" in runner.status_table("tiny")
-    # a local run is copied as it is
+    assert cells[0].source == "# The title" and "At a glance" in cells[1].source
+    assert "published run from" in cells[1].source
+    assert "A published run, imported" in cells[2].source
+    assert "published run from" in runner.status_table("tiny")
+    # a local run: its title, its box, its cells
     (runs / "tiny" / "ch2_primer" / publish.IMPORTED).unlink()
     runner.copy_page("ch2_primer", "tiny", page)
-    assert len(nbformat.read(page, as_version=4).cells) == 2
+    cells = nbformat.read(page, as_version=4).cells
+    assert len(cells) == 3 and "computed by this build" in cells[1].source
 
 
 def test_the_cli_refuses_a_bad_archive_with_a_clear_error(tmp_path):

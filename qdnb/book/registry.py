@@ -26,6 +26,7 @@ from qdnb.core.config import check_scale
 class Chapter:
     name: str  # the notebook's stem and the chapter module's name
     title: str
+    short: str  # the page in a few words (the scorecard's first column)
 
     @property
     def notebook(self) -> Path:
@@ -47,15 +48,29 @@ class Chapter:
 
 
 CHAPTERS: tuple[Chapter, ...] = (
-    Chapter("ch2_primer", "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)"),
-    Chapter("ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap"),
-    Chapter("ch3_baselines", "Chapter 3: the policy-gradient baselines (Table 3.4)"),
-    Chapter("ch3_evolution", "Chapter 3: the evolutionary competitors (Table 3.3)"),
     Chapter(
-        "ch4_reproducibility", "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni"
+        "ch2_primer",
+        "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
+        "Ch. 1–2: the deceptive maze",
     ),
-    Chapter("ch4_qdt", "Chapter 4: the Quality-Diversity Transformer"),
-    Chapter("ch5_flow_lenia", "Chapter 5: the Flow Lenia Transformer"),
+    Chapter("ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap", "Ch. 3: QD-PG"),
+    Chapter(
+        "ch3_baselines",
+        "Chapter 3: the policy-gradient baselines (Table 3.4)",
+        "Ch. 3: policy-gradient baselines",
+    ),
+    Chapter(
+        "ch3_evolution",
+        "Chapter 3: the evolutionary competitors (Table 3.3)",
+        "Ch. 3: evolution strategies",
+    ),
+    Chapter(
+        "ch4_reproducibility",
+        "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni",
+        "Ch. 4: MAP-Elites Low-Spread",
+    ),
+    Chapter("ch4_qdt", "Chapter 4: the Quality-Diversity Transformer", "Ch. 4: the QDT"),
+    Chapter("ch5_flow_lenia", "Chapter 5: the Flow Lenia Transformer", "Ch. 5: the FLT"),
 )
 
 

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from qdnb.book import publish, registry
+from qdnb.book import publish, registry, scorecard
 from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
 from qdnb.core import paths, sharding
 from qdnb.core.config import SCALES, check_scale
@@ -192,10 +192,23 @@ def _last_write(line: str) -> str:
     return parts[-1] if parts else ""
 
 
+# A tqdm bar ("desc: 40%|████      | 2/5 [00:01<00:02, 1.2it/s]"), a cursor move of
+# interleaved bars, and the checkpoint store's notices: terminal output, not the page's
+# (the run's checkpoints are in its summary.json and the page's opening box).
+_TERMINAL_ONLY = re.compile(
+    r"\d+%\|.*\d+/\d+|\|\s*\d+/\d+\s*\[|\x1b\[[0-9;]*[A-Za-z]|^checkpoints: "
+)
+
+
+def page_line(line: str) -> bool:
+    """Whether a line a cell wrote belongs on the page (not a progress bar or notice)."""
+    return bool(line.strip()) and not _TERMINAL_ONLY.search(line)
+
+
 def tidy_streams(path: Path) -> None:
-    """Merge consecutive stdout/stderr outputs of each cell and keep only the last
-    state of carriage-return-rewritten lines, so that a progress bar reads as one
-    finished line in the book instead of one line per update; tag papermill's
+    """Merge consecutive stdout/stderr outputs of each cell and drop what belongs to the
+    terminal only (progress bars, in each state carriage returns rewrote, and the
+    checkpoint notices: ``page_line``), dropping an output left empty; tag papermill's
     injected parameters cell ``remove-cell``."""
     import nbformat
 
@@ -218,11 +231,16 @@ def tidy_streams(path: Path) -> None:
                 merged[-1].text += out.text
             else:
                 merged.append(out)
+        kept = []
         for out in merged:
             if out.output_type == "stream":
                 lines = [_last_write(line) for line in out.text.split("\n")]
-                out.text = "\n".join(line for line in lines if line) + "\n"
-        cell.outputs = merged
+                lines = [line for line in lines if page_line(line)]
+                if not lines:
+                    continue
+                out.text = "\n".join(lines) + "\n"
+            kept.append(out)
+        cell.outputs = kept
     atomic_write_bytes(path, nbformat.writes(nb).encode())
 
 
@@ -335,32 +353,38 @@ def run_notebooks(
 
 
 def status_table(scale: str) -> str:
-    """The reproduction-status table of the intro page, read from the runs' summaries."""
+    """The intro's reproduction status, read from the runs' summaries: the scale this
+    build was made at, the claims scorecard over every scale this machine holds a run
+    of, and this build's pages (where each ran, how long it took)."""
+    by_scale = scorecard.summaries()
     lines = [
-        f"Built at scale **{scale}**.",
+        f"```{{admonition}} This build's pages ran at scale `{scale}`",
+        f":class: {scorecard.ADMONITION_CLASS[scale]}",
+        f"`{scale}`: {scorecard.SCALE_MEANING[scale]}.",
+        "```",
         "",
-        "| chapter | notebook | status at this scale | wall time | headline |",
+        scorecard.tally(by_scale),
+        "Each claim the book checks, by scale (✓ holds, ✗ fails, — cannot show: the run "
+        "could not test it; the numbers behind each verdict beneath it):",
+        "",
+        scorecard.scorecard(by_scale),
+        f"The pages of this build (scale `{scale}`):",
+        "",
+        "| page | where it ran | seed | devices | wall time |",
         "|---|---|---|---|---|",
     ]
     for chapter in registry.CHAPTERS:
-        name, title = chapter.name, chapter.title
-        present = chapter.notebook.exists()
-        summary = load_summary(scale, name) if present else None
-        if not present:
-            lines.append(f"| {title} | — | planned, not yet in the book | — | — |")
+        name = chapter.name
+        summary = by_scale[scale][name]
+        link = f"[{chapter.title}](chapters/{name})"
+        if not chapter.notebook.exists():
+            lines.append(f"| {chapter.title} | planned, not yet in the book | — | — | — |")
         elif summary is None:
-            lines.append(f"| {title} | [{name}](chapters/{name}) | no summary written | — | — |")
+            lines.append(f"| {link} | no run record (`summary.json`) | — | — | — |")
         else:
-            headline = summary.get("results", {}).get("headline", "")
-            record = publish.imported(scale, name)
-            where = (
-                f"imported: ran on {record.get('host')}, published {record.get('published_at')}"
-                if record
-                else "ran"
-            )
             lines.append(
-                f"| {title} | [{name}](chapters/{name}) | {where} (seed {summary['seed']}, "
-                f"git {summary['git_sha'][:12]}) | {summary['wall_time_s']:.0f} s | {headline} |"
+                f"| {link} | {scorecard.where(scale, name, summary)} | {summary['seed']} | "
+                f"{summary.get('device', '—')} | {summary['wall_time_s']:.0f} s |"
             )
     return "\n".join(lines) + "\n"
 
@@ -418,17 +442,19 @@ def finished_record(name: str, scale: str) -> dict | None:
 
 
 def copy_page(name: str, scale: str, dest: Path) -> None:
-    """The executed notebook as the book's page; an imported run's page opens with
-    ``publish.banner`` after its title."""
+    """The executed notebook as the book's page: after its title, the "at a glance"
+    box (``scorecard.chapter_box``: its claims at this scale, the scale's meaning, the
+    run's seed, devices and time) and, for an imported run, ``publish.banner``."""
     import nbformat
 
     source = executed_path(name, scale)
     record = publish.imported(scale, name)
-    if record is None:
-        shutil.copy(source, dest)
-        return
     nb = nbformat.read(source, as_version=4)
-    nb.cells.insert(1, nbformat.v4.new_markdown_cell(publish.banner(record)))
+    box = scorecard.chapter_box(name, scale, load_summary(scale, name))
+    opening = [nbformat.v4.new_markdown_cell(box)]
+    if record is not None:
+        opening.append(nbformat.v4.new_markdown_cell(publish.banner(record)))
+    nb.cells[1:1] = opening
     atomic_write_bytes(dest, nbformat.writes(nb).encode())
 
 

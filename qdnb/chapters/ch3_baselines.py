@@ -32,6 +32,7 @@ from qdnb.chapters.ch3_qdpg import (
 )
 from qdnb.chapters.ch3_qdpg import METHODS as CHAPTER_METHODS
 from qdnb.chapters.ch3_qdpg import SCALES as QDPG_SCALES
+from qdnb.core import claims as claim_records
 from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
 
@@ -261,6 +262,12 @@ def summary_results(cfg: BaselinesConfig, result: Result) -> dict[str, Any]:
         "headline": f"QD-PG beats {count}/{len(held)} baselines on Point-Maze",
         "claims_held": count,
         "claims_total": len(held),
+        "claims": [
+            claim_records.record(f"ch3_baselines/{name}", text, ok, numbers)
+            for name, (text, ok, numbers) in zip(
+                [n for n in BASELINES if n in result.methods("pointmaze")], held
+            )
+        ],
         "num_seeds": {env_name: cfg.seeds(env_name) for env_name in ENVIRONMENTS},
         "qdpg_source": dict(result.qdpg_status),
         **method_summaries(result.by_env, expected=("QD-PG",) + BASELINES),

@@ -34,6 +34,7 @@ from qdnb.chapters.ch3_qdpg import (
     load_or_recompute_qdpg,
     run_environment,
 )
+from qdnb.core import claims as claim_records
 
 EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
 # this page's methods: their builders in the chapter's method registry
@@ -170,6 +171,14 @@ def sample_efficiency(result: Result, env_name: str = "pointmaze") -> tuple[str,
     return claim, holds, numbers
 
 
+def claim_status(result: Result, holds: bool, env_name: str = "pointmaze") -> str:
+    """The claim's status: it cannot show when QD-PG missed the goal on a seed (the claim
+    compares steps to the goal, and QD-PG then has none), else it holds or fails."""
+    if not np.isfinite(result.steps(env_name)["QD-PG"]).all():
+        return claim_records.CANNOT_SHOW
+    return claim_records.HOLDS if holds else claim_records.FAILS
+
+
 def ratio_to_qdpg(result: Result, env_name: str) -> dict[str, float | None]:
     """Per method, its mean steps to the goal over QD-PG's (``None`` when either is
     never reached on some seed)."""
@@ -185,8 +194,10 @@ def summary_results(cfg: EvolutionConfig, result: Result) -> dict[str, Any]:
     """``results[env][method]``: final performance, steps to the goal (``None`` when never
     reached, per seed and mean), ratio to QD-PG, environment steps; the claim."""
     claim, holds, numbers = sample_efficiency(result)
+    status = claim_status(result, holds)
     out: dict[str, Any] = {
-        "headline": f"{'holds' if holds else 'does not hold'}: {claim} on Point-Maze",
+        "headline": f"{status}: {claim} on Point-Maze",
+        "claims": [claim_records.record("ch3_evolution/sample_efficiency", claim, status, numbers)],
         "claims_held": int(holds),
         "claims_total": 1,
         "claim_numbers": numbers,

@@ -8,6 +8,8 @@ from typing import Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
+from qdnb.core.names import ENV_LABELS  # noqa: F401  (the notebooks' labels)
+
 # One colour per method across the book (a QDT takes the colour of the repertoire it learns from).
 METHOD_COLORS = {
     "GA": "#7f7f7f",
@@ -35,14 +37,6 @@ METHOD_COLORS = {
     "flt": "#8c6d31",
     "persistence": "#e6ab02",
     "mean_frame": "#1b9e77",  # Chapter 5's predictors
-}
-# How the environments are named in titles, tables and legends (as in the thesis).
-ENV_LABELS = {
-    "pointmaze": "Point-Maze",
-    "antmaze": "Ant-Maze",
-    "anttrap": "Ant-Trap",
-    "ant_omni": "Ant-Omni",
-    "halfcheetah_uni": "Halfcheetah-Uni",
 }
 # What each axis of an environment's behaviour descriptor measures (QDax's order for the feet)
 DESCRIPTOR_LABELS = {

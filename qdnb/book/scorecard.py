@@ -1,0 +1,157 @@
+"""The book's claims scorecard and each chapter page's "at a glance" box.
+
+Both are read from the runs' ``summary.json`` (``results["claims"]``, see
+``qdnb.core.claims``): every scale this machine holds a run of, computed here or
+imported from a published archive.  Nothing here computes a result.
+"""
+
+from __future__ import annotations
+
+import html
+from typing import Any
+
+from qdnb.book import publish, registry
+from qdnb.core.claims import CANNOT_SHOW, FAILS, HOLDS
+from qdnb.core.config import SCALES
+from qdnb.core.io import load_summary
+
+# what each scale is for, in a sentence (the chapter boxes and the intro)
+SCALE_MEANING = {
+    "tiny": "a code-path check: every loop runs a few iterations, in minutes; the numbers "
+    "are not evidence, and claims are not expected to show",
+    "small": "a laptop run (at most 25 minutes per notebook on 2 CPU cores), budgets, widths "
+    "and spaces shrunk by the rule in the page's scale cell; claims should show qualitatively",
+    "paper": "the thesis's budgets, widths and spaces; the thesis's numbers should show",
+}
+SYMBOL = {HOLDS: "✓ holds", FAILS: "✗ fails", CANNOT_SHOW: "— cannot show"}
+NOT_RUN = "not run"
+
+
+def summaries(scales: tuple[str, ...] = SCALES) -> dict[str, dict[str, dict | None]]:
+    """``{scale: {notebook: summary or None}}`` for every registered chapter."""
+    return {s: {c.name: load_summary(s, c.name) for c in registry.CHAPTERS} for s in scales}
+
+
+def claims_of(summary: dict | None) -> list[dict[str, str]] | None:
+    """A run's claim records; ``None`` when there is no run or it predates them."""
+    if summary is None:
+        return None
+    return summary.get("results", {}).get("claims")
+
+
+def _cell(claim: dict[str, str] | None, summary: dict | None) -> str:
+    if summary is None:
+        return NOT_RUN
+    if claim is None:
+        return "ran, claim not recorded (re-run the page)"
+    numbers = html.escape(claim["numbers"], quote=False).replace("|", "&#124;")
+    return f'{SYMBOL[claim["status"]]}<br><span class="qdnb-numbers">{numbers}</span>'
+
+
+def where(scale: str, name: str, summary: dict[str, Any]) -> str:
+    """Where a run was computed: here, or the host and date of a published run."""
+    record = publish.imported(scale, name)
+    if record:
+        return f"published run from {record.get('host')}, {record.get('published_at')}"
+    return "computed by this build"
+
+
+def scorecard(by_scale: dict[str, dict[str, dict | None]]) -> str:
+    """The intro's table (MyST Markdown): each claim the book checks by scale."""
+    scales = list(by_scale)
+    lines = [
+        "| page | claim | " + " | ".join(f"`{s}`" for s in scales) + " |",
+        "|---|---|" + "---|" * len(scales),
+    ]
+    for chapter in registry.CHAPTERS:
+        runs = {s: by_scale[s].get(chapter.name) for s in scales}
+        rows: dict[str, str] = {}  # id -> text, in the order the runs list them
+        for s in scales:
+            for c in claims_of(runs[s]) or []:
+                rows.setdefault(c["id"], c["claim"])
+        link = f"[{chapter.short}](chapters/{chapter.name})"
+        if not rows:
+            lines.append(
+                f"| {link} | *no claim recorded yet* | "
+                + " | ".join(NOT_RUN if runs[s] is None else "ran" for s in scales)
+                + " |"
+            )
+        for claim_id, text in rows.items():
+            cells = []
+            for s in scales:
+                found = {c["id"]: c for c in claims_of(runs[s]) or []}
+                cells.append(_cell(found.get(claim_id), runs[s]))
+            text = html.escape(text, quote=False)
+            lines.append(f"| {link} | {text} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def tally(by_scale: dict[str, dict[str, dict | None]]) -> str:
+    """One line per scale: how many claims hold, fail, cannot show; where its runs came from."""
+    out = []
+    for s, runs in by_scale.items():
+        records = [c for r in runs.values() for c in claims_of(r) or []]
+        ran = [n for n, r in runs.items() if r is not None]
+        if not ran:
+            out.append(f"- **`{s}`**: not run on this build's machine, none published.")
+            continue
+        counts = {k: sum(c["status"] == k for c in records) for k in (HOLDS, FAILS, CANNOT_SHOW)}
+        imported = [n for n in ran if publish.imported(s, n)]
+        origin = (
+            f"; {len(imported)} of them published runs imported from elsewhere"
+            if imported
+            else ", all computed by this build"
+        )
+        out.append(
+            f"- **`{s}`** ({SCALE_MEANING[s]}): {counts[HOLDS]} of {len(records)} claims hold, "
+            f"{counts[FAILS]} fail, {counts[CANNOT_SHOW]} cannot show; {len(ran)} of "
+            f"{len(runs)} pages ran{origin}."
+        )
+    return "\n".join(out) + "\n"
+
+
+ADMONITION_CLASS = {"tiny": "warning", "small": "note", "paper": "tip"}
+
+
+def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
+    """The box a chapter page opens with: its claims and their status at this page's
+    scale, what the scale means, and the run's seed, devices and wall time."""
+    title = f"At a glance: this page at scale `{scale}`"
+    lines = [f"````{{admonition}} {title}", f":class: {ADMONITION_CLASS[scale]}"]
+    if scale == "tiny":
+        lines.append(
+            "**Scale `tiny` is a code-path check only: the numbers on this page are not "
+            "evidence.** "
+        )
+    lines.append(f"`{scale}`: {SCALE_MEANING[scale]}.")
+    if summary is None:
+        lines += ["", "This page has no run record (`summary.json`).", "````"]
+        return "\n".join(lines)
+    devices = summary.get("devices") or {}
+    device = (
+        f"{devices.get('count')} {devices.get('platform', '').upper()} device(s)"
+        if devices
+        else summary.get("device", "unknown device")
+    )
+    resumed = (summary.get("checkpoints") or {}).get("resumed") or []
+    lines += [
+        "",
+        f"Seed {summary.get('seed')} · {device} ({summary.get('device', '')}) · "
+        f"{summary.get('wall_time_s', 0):.0f} s"
+        + (f", {len(resumed)} loop(s) resumed from checkpoints" if resumed else "")
+        + f" · {where(scale, name, summary)}, commit `{str(summary.get('git_sha', ''))[:12]}`.",
+        "",
+    ]
+    records = claims_of(summary)
+    if records is None:
+        headline = summary.get("results", {}).get("headline", "")
+        lines += [f"Result: {headline} (claims not itemised by this run; re-run the page)."]
+    else:
+        lines += ["| claim | status | numbers |", "|---|---|---|"]
+        lines += [
+            f"| {html.escape(c['claim'], quote=False)} | {SYMBOL[c['status']]} | "
+            f"{html.escape(c['numbers'], quote=False).replace('|', '&#124;')} |"
+            for c in records
+        ]
+    lines.append("````")
+    return "\n".join(lines)

@@ -1,0 +1,66 @@
+"""The claims scorecard and the chapter boxes, read from hand-made summaries."""
+
+import json
+
+import pytest
+
+from qdnb.book import runner, scorecard
+from qdnb.core import claims, paths
+
+
+@pytest.fixture
+def runs(tmp_path, monkeypatch):
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    return tmp_path / "runs"
+
+
+def write_summary(scale, name, records, wall=12.0):
+    d = paths.run_dir(scale, name)
+    summary = {
+        "notebook": name,
+        "scale": scale,
+        "seed": 0,
+        "git_sha": "0123456789abcdef",
+        "device": "cpu: cpu x2 (2 CPU cores)",
+        "devices": {"platform": "cpu", "count": 2},
+        "wall_time_s": wall,
+        "results": {"headline": "h", "claims": records},
+    }
+    (d / "summary.json").write_text(json.dumps(summary))
+
+
+def test_the_scorecard_lists_each_claim_by_scale_with_its_numbers(runs):
+    a = claims.record("ch5/flt", "The FLT beats the mean frame", False, "0.38 vs 0.0035")
+    write_summary("tiny", "ch5_flow_lenia", [a])
+    write_summary("small", "ch5_flow_lenia", [{**a, "status": "holds", "numbers": "0.01 vs 0.02"}])
+    write_summary(
+        "tiny", "ch3_evolution", [claims.record("e", "QD-PG is faster", "cannot show", "")]
+    )
+    table = scorecard.scorecard(scorecard.summaries())
+    (row,) = [line for line in table.splitlines() if "The FLT beats" in line]
+    cells = [c.strip() for c in row.split(" | ")]
+    assert cells[2].startswith("✗ fails") and "0.38 vs 0.0035" in cells[2]
+    assert cells[3].startswith("✓ holds") and "0.01 vs 0.02" in cells[3]
+    assert cells[4].rstrip(" |") == scorecard.NOT_RUN  # no paper run
+    assert any("QD-PG is faster" in r and "— cannot show" in r for r in table.splitlines())
+    # a page with no run at any scale still has its row
+    assert "*no claim recorded yet*" in table and "[Ch. 4: the QDT](chapters/ch4_qdt)" in table
+    tally = scorecard.tally(scorecard.summaries())
+    assert "**`tiny`**" in tally and "0 of 2 claims hold, 1 fail, 1 cannot show" in tally
+    assert "**`paper`**: not run" in tally
+
+
+def test_a_page_opens_with_its_claims_and_at_tiny_a_warning(runs):
+    write_summary("tiny", "ch2_primer", [claims.record("ch2/goal", "NS reaches", False, "0/2")])
+    box = scorecard.chapter_box(
+        "ch2_primer",
+        "tiny",
+        json.loads((paths.run_dir("tiny", "ch2_primer") / "summary.json").read_text()),
+    )
+    assert box.startswith("````{admonition} At a glance") and ":class: warning" in box
+    assert "code-path check only" in box and "not evidence" in box
+    assert "| NS reaches | ✗ fails | 0/2 |" in box and "12 s" in box and "2 CPU" in box
+    small = scorecard.chapter_box("ch2_primer", "small", None)
+    assert ":class: note" in small and "not evidence" not in small and "no run record" in small
+    status = runner.status_table("tiny")
+    assert "ran at scale `tiny`" in status and "| NS reaches | ✗ fails<br>" in status
