@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from qdnb.book import publish, registry, scorecard
+from qdnb.book import pagecheck, publish, registry, scorecard
 from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
 from qdnb.core import paths, sharding
 from qdnb.core.config import SCALES, check_scale
@@ -358,7 +358,7 @@ def status_table(scale: str) -> str:
     of, and this build's pages (where each ran, how long it took)."""
     by_scale = scorecard.summaries()
     lines = [
-        f"```{{admonition}} This build's pages ran at scale `{scale}`",
+        f"```{{admonition}} This build's pages ran at scale {scale}",
         f":class: {scorecard.ADMONITION_CLASS[scale]}",
         f"`{scale}`: {scorecard.SCALE_MEANING[scale]}.",
         "```",
@@ -441,6 +441,49 @@ def finished_record(name: str, scale: str) -> dict | None:
     return record if record.get("status") == "ok" else None
 
 
+def book_figures(nb) -> None:
+    """Each figure a cell displayed with ``qdnb.plotting.show`` becomes a figure of the
+    page: the cell's outputs are split so that the figure sits alone in an input-less
+    cell whose MyST-NB metadata carries its caption, label and alt text (MyST-NB reads
+    them per cell); the other outputs keep their order around it."""
+    import nbformat
+
+    from qdnb.plotting import FIGURE_KEY
+
+    cells = []
+    for cell in nb.cells:
+        outputs = cell.get("outputs", [])
+        if cell.cell_type != "code" or not any(
+            FIGURE_KEY in o.get("metadata", {}) for o in outputs
+        ):
+            cells.append(cell)
+            continue
+        groups: list[tuple[dict | None, list]] = [(None, [])]
+        for out in outputs:
+            figure = out.get("metadata", {}).get(FIGURE_KEY)
+            if figure is not None:
+                groups.append((figure, [out]))
+                groups.append((None, []))
+            else:
+                groups[-1][1].append(out)
+        cell.outputs = groups[0][1]
+        cells.append(cell)
+        for figure, group in groups[1:]:
+            if not group:
+                continue
+            # (a code cell with no source is not rendered at all)
+            source = f"# {'figure' if figure is not None else 'output'} of the cell above"
+            extra = nbformat.v4.new_code_cell(source, metadata={"tags": ["remove-input"]})
+            extra.outputs = group
+            if figure is not None:
+                options = {"caption": figure["caption"]}
+                if figure.get("name"):
+                    options["name"] = figure["name"]
+                extra.metadata["mystnb"] = {"figure": options, "image": {"alt": figure["alt"]}}
+            cells.append(extra)
+    nb.cells = cells
+
+
 def copy_page(name: str, scale: str, dest: Path) -> None:
     """The executed notebook as the book's page: after its title, the "at a glance"
     box (``scorecard.chapter_box``: its claims at this scale, the scale's meaning, the
@@ -455,6 +498,7 @@ def copy_page(name: str, scale: str, dest: Path) -> None:
     if record is not None:
         opening.append(nbformat.v4.new_markdown_cell(publish.banner(record)))
     nb.cells[1:1] = opening
+    book_figures(nb)
     atomic_write_bytes(dest, nbformat.writes(nb).encode())
 
 
@@ -510,6 +554,11 @@ def build_book(
     if leaked:
         raise RuntimeError(
             "the rendered book shows paths of this machine:\n  " + "\n  ".join(leaked[:20])
+        )
+    shown = pagecheck.static_problems(html)
+    if shown:
+        raise RuntimeError(
+            "the rendered book shows what a reader must not see:\n  " + "\n  ".join(shown[:20])
         )
     external = external_resources(html)
     if external:

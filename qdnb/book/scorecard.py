@@ -116,7 +116,8 @@ ADMONITION_CLASS = {"tiny": "warning", "small": "note", "paper": "tip"}
 def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
     """The box a chapter page opens with: its claims and their status at this page's
     scale, what the scale means, and the run's seed, devices and wall time."""
-    title = f"At a glance: this page at scale `{scale}`"
+    # (an info string with backticks would not open a fence)
+    title = f"At a glance: this page at scale {scale}"
     lines = [f"````{{admonition}} {title}", f":class: {ADMONITION_CLASS[scale]}"]
     if scale == "tiny":
         lines.append(

@@ -8,3 +8,13 @@ ENV_LABELS = {
     "ant_omni": "Ant-Omni",
     "halfcheetah_uni": "Halfcheetah-Uni",
 }
+
+# What a reader sees for the book's other internal names (a predictor, a sweep's variant)
+# when a table shows one.
+READER_NAMES = {
+    **ENV_LABELS,
+    "flt": "FLT",
+    "flt_teacher_forced": "FLT, true inputs (one step)",
+    "mean_frame": "mean frame",
+    "persistence": "persistence",
+}

@@ -9,6 +9,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from qdnb.core.names import ENV_LABELS  # noqa: F401  (the notebooks' labels)
+from qdnb.plotting.tables import use_book_tables
 
 # One colour per method across the book (a QDT takes the colour of the repertoire it learns from).
 METHOD_COLORS = {
@@ -45,6 +46,14 @@ DESCRIPTOR_LABELS = {
 }
 
 
+# The page's content column, in inches at the figures' display resolution (100 px per
+# inch: 680 px, the column of the rendered book at 1280 px wide); a figure never exceeds it,
+# so that its 9-point fonts show at 9 points.
+COLUMN_INCHES = 6.8
+DISPLAY_DPI = 100
+FIGURE_KEY = "qdnb_figure"  # the output metadata that makes a displayed image a book figure
+
+
 def method_color(name: str) -> str:
     """The book's colour of a method (``KeyError`` names the known ones)."""
     if name not in METHOD_COLORS:
@@ -53,19 +62,71 @@ def method_color(name: str) -> str:
 
 
 def set_style() -> None:
-    """One style for every figure of the book."""
+    """One style for every figure and table of the book: figures sized for the page's
+    column, drawn at twice their displayed resolution (``retina``: 220 dpi), and
+    DataFrames shown as ``tables.styled`` tables."""
+    use_book_tables()
+    try:
+        from matplotlib_inline.backend_inline import set_matplotlib_formats
+
+        set_matplotlib_formats("retina")
+    except ImportError:  # pragma: no cover - ships with the notebooks' kernel
+        pass
     plt.rcParams.update(
         {
-            "figure.dpi": 110,
-            "savefig.dpi": 150,
+            "figure.dpi": DISPLAY_DPI,
+            "savefig.dpi": 2 * DISPLAY_DPI,
             "font.size": 9,
             "axes.titlesize": 10,
+            "axes.labelsize": 9,
+            "xtick.labelsize": 9,
+            "ytick.labelsize": 9,
+            "legend.fontsize": 9,
+            "figure.titlesize": 10,
+            "axes.formatter.limits": (-3, 4),  # 250000 reads as 2.5 and x10^5 at the axis end
             "axes.spines.top": False,
             "axes.spines.right": False,
             "axes.grid": True,
             "grid.alpha": 0.25,
             "legend.frameon": False,
         }
+    )
+
+
+def show(fig: plt.Figure, caption: str, alt: str, name: str | None = None) -> None:
+    """Display ``fig`` as a figure of the book: a PNG at twice its displayed resolution,
+    shown at most the page's column wide, with its ``caption`` (MyST Markdown, shown
+    beneath it and numbered by the book), its ``alt`` text (what the figure shows, for
+    a reader who cannot see it) and ``name``, a label other text can refer to.  In
+    Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
+    shrunk into the column, its fonts would fall below 9 points."""
+    import base64
+    import io
+
+    from IPython.display import display
+
+    width, height = fig.get_size_inches()
+    if width > COLUMN_INCHES + 1e-6:
+        plt.close(fig)
+        raise ValueError(
+            f"a figure {width:.1f} in wide does not fit the page's column ({COLUMN_INCHES} in): "
+            "wrap its panels into rows (panel_grid) or split it"
+        )
+    if not caption.strip() or not alt.strip():
+        plt.close(fig)
+        raise ValueError("a book figure needs a caption and an alt text")
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=2 * DISPLAY_DPI, bbox_inches="tight")
+    plt.close(fig)
+    png = buffer.getvalue()
+    pixels = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    display(
+        {"image/png": base64.b64encode(png).decode(), "text/plain": f"<Figure: {alt}>"},
+        raw=True,
+        metadata={
+            "image/png": {"width": pixels[0] // 2, "height": pixels[1] // 2},
+            FIGURE_KEY: {"caption": caption, "alt": alt, "name": name or ""},
+        },
     )
 
 
@@ -182,19 +243,22 @@ def draw_capsule_walls(ax: plt.Axes, walls, radius: float = 0.5, color: str = "b
 
 
 def panel_grid(
-    n: int, ncols: int = 3, size: tuple[float, float] = (3.4, 3.0), **kwargs
+    n: int, ncols: int = 3, aspect: float = 0.9, **kwargs
 ) -> tuple[plt.Figure, list[plt.Axes]]:
     """``n`` panels wrapped into rows of at most ``ncols``, as the thesis's figures
-    are (a row of five panels renders at thumbnail size at the page's width); the
-    unused slots of the last row are hidden.  Returns the figure and the ``n`` axes."""
+    are (a row of five panels renders at thumbnail size at the page's width), the
+    figure as wide as the page's column (``COLUMN_INCHES``), each panel ``aspect``
+    times as high as wide; the unused slots of the last row are hidden.  Returns the
+    figure and the ``n`` axes."""
     if n < 1 or ncols < 1:
         raise ValueError(f"n and ncols must be positive, got {n} and {ncols}")
     cols = min(n, ncols)
     rows = -(-n // cols)
+    width = COLUMN_INCHES / ncols  # a panel's width, the same for any n
     fig, axes = plt.subplots(
         rows,
         cols,
-        figsize=(size[0] * cols, size[1] * rows),
+        figsize=(width * cols, width * aspect * rows + 0.4),
         squeeze=False,
         constrained_layout=True,
         **kwargs,

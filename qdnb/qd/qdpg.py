@@ -20,7 +20,7 @@ descriptors, filtered by novelty, to the FIFO archive (Section 3.6.3).
 - ``"diversity"``: D-PG, diversity updates only;
 - ``"quality"``: Q-PG, quality updates only.
 
-``coupling`` says how the critics meet the actors (issue 35's A/B,
+``coupling`` says how the critics meet the actors (measured side by side in
 ``bench/qdpg_coupling.py``):
 
 - ``"thesis"`` (QD-PG): "Every time a policy gradient is computed, QD-PG also
