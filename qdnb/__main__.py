@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 from qdnb.book import publish, runner
 from qdnb.core.config import SCALES
@@ -82,6 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     imp = sub.add_parser("import", help="check a published run's archive and unpack it")
     imp.add_argument("archive")
     imp.add_argument("--replace", action="store_true", help="replace a run already here")
+    check = sub.add_parser(
+        "check-pages", help="open every page of the built book in headless Chromium and report"
+    )
+    check.add_argument("html", nargs="?", default="book/_build/html", help="the built book")
     args = parser.parse_args(argv)
 
     try:
@@ -114,6 +119,20 @@ def main(argv: list[str] | None = None) -> int:
             print(f"published: {publish.publish(args.scale, args.notebook, args.out)}")
         elif args.command == "import":
             print(f"imported: {publish.import_archive(args.archive, args.replace)}")
+        elif args.command == "check-pages":
+            from qdnb.book import pagecheck
+
+            html = Path(args.html)
+            if not (html / "index.html").exists():
+                raise ValueError(f"no built book at {html}: run `make book` first")
+            why_not = pagecheck.browser_available()
+            if why_not:
+                raise RuntimeError(f"cannot open the pages in a browser: {why_not}")
+            problems = pagecheck.static_problems(html) + pagecheck.browser_problems(html)
+            for problem in problems:
+                print(problem)
+            print(f"{len(pagecheck.pages(html))} pages checked, {len(problems)} problem(s)")
+            return 1 if problems else 0
     except (ValueError, runner.NotebookFailed, RuntimeError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1 if not isinstance(err, ValueError) else 2

@@ -1,0 +1,158 @@
+"""Checks of the rendered book, as a reader meets it.
+
+``static_problems`` reads the HTML files (no browser): raw LaTeX left in a cell's
+output, a pandas table with its 0, 1, 2... index or cells cut to "...", a progress bar.
+The book build refuses a page with any of them.
+
+``browser_problems`` opens every page in headless Chromium (Selenium, Debian's
+``chromium`` and ``chromium-driver``) and reports what only a browser sees: a
+JavaScript error, a broken image, a table or figure wider than the content column,
+``$`` math that MathJax left unrendered, a progress-bar line in the page's text.
+"""
+
+from __future__ import annotations
+
+import html as html_lib
+import re
+import shutil
+from pathlib import Path
+
+# a progress bar as tqdm draws it: "40%|████      | 2/5 [00:01<00:02, 1.2it/s]"
+PROGRESS_BAR = re.compile(r"\d+%\|.*\|\s*\d+/\d+|\|\s*\d+/\d+\s*\[\d")
+# inline math that no renderer took: "$10^6$", "$A^0$" (a price like "$5" is not math)
+RAW_MATH = re.compile(r"(?<![\\$\w])\$(?!\s)[^$\n<>]{1,80}?[\^_\\{}][^$\n<>]{0,80}?(?<!\s)\$(?!\w)")
+_OUTPUT = re.compile(r'<div class="cell_output[^"]*">(.*?)</div>\s*</div>\s*</div>', re.S)
+_TAG = re.compile(r"<[^>]+>")
+
+
+def pages(html_dir: Path) -> list[Path]:
+    """The book's pages (not the search, index and static files)."""
+    return sorted(
+        p
+        for p in html_dir.rglob("*.html")
+        if "_static" not in p.parts
+        and "_sources" not in p.parts
+        and p.name not in {"genindex.html", "search.html"}
+    )
+
+
+def _text(fragment: str) -> str:
+    return html_lib.unescape(_TAG.sub(" ", fragment))
+
+
+def static_problems(html_dir: Path) -> list[str]:
+    """What a reader must not see in a cell's output, found in the HTML files."""
+    problems = []
+    for page in pages(html_dir):
+        name = page.relative_to(html_dir)
+        source = page.read_text(errors="ignore")
+        for block in _OUTPUT.findall(source):
+            # math MyST rendered sits in a math span: drop it before looking for raw $..$
+            text = _text(re.sub(r'<span class="math[^"]*">.*?</span>', " ", block, flags=re.S))
+            for m in RAW_MATH.finditer(text):
+                problems.append(f"{name}: raw LaTeX in an output: {m.group(0)!r}")
+            for line in text.splitlines():
+                if PROGRESS_BAR.search(line):
+                    problems.append(f"{name}: a progress bar in an output: {line.strip()[:80]!r}")
+            for table in re.findall(
+                r'<table[^>]*class="[^"]*dataframe[^"]*"[^>]*>.*?</table>', block, re.S
+            ):
+                if re.search(r"<th>\s*0\s*</th>\s*<td", table):
+                    problems.append(f"{name}: a pandas table shows its 0, 1, 2... index")
+            for cell in re.findall(r"<td[^>]*>(.*?)</td>", block, re.S):
+                if _text(cell).strip().endswith("..."):
+                    problems.append(f"{name}: a table cell cut to '...': {_text(cell)[:60]!r}")
+    return problems
+
+
+def browser_available() -> str | None:
+    """Why the browser checks cannot run here, or ``None`` when they can."""
+    try:
+        import selenium  # noqa: F401
+    except ImportError:
+        return "selenium is not installed (it is in requirements.lock)"
+    if not (shutil.which("chromium") and shutil.which("chromedriver")):
+        return (
+            "Chromium and its driver are not installed (apt-get install chromium chromium-driver)"
+        )
+    return None
+
+
+# Run in each page once MathJax has typeset it: the page's problems as strings.
+_IN_PAGE = r"""
+const out = [];
+const column = document.querySelector('article.bd-article') || document.querySelector('main');
+const width = column ? column.getBoundingClientRect().width : window.innerWidth;
+for (const img of document.images) {
+  if (!img.complete || img.naturalWidth === 0) {
+    out.push('a broken image: ' + img.getAttribute('src'));
+  }
+}
+for (const el of document.querySelectorAll('figure, img, table, div.cell_output')) {
+  if (el.closest('.qdnb-table, .table-wrapper, .pst-scrollable-table-container')) continue;
+  if (el.closest('nav, header, footer, .bd-sidebar-primary, .bd-sidebar-secondary')) continue;
+  const w = el.getBoundingClientRect().width;
+  if (w > width + 2) {
+    const what = el.tagName.toLowerCase() + ' ' + (el.className || '');
+    out.push(`wider than the column (${Math.round(w)} > ${Math.round(width)} px): ${what}`);
+  }
+}
+for (const wrapper of document.querySelectorAll('.qdnb-table')) {
+  const w = wrapper.getBoundingClientRect().width;
+  if (w > width + 2) out.push('a table wider than the column (' + Math.round(w) + ' px)');
+}
+for (const o of document.querySelectorAll('div.cell_output')) {
+  const text = o.innerText || '';
+  if (/\d+%\|.*\|\s*\d+\/\d+/.test(text)) out.push('a progress bar in an output');
+  const raw = text.match(/(^|[^\\$\w])\$(?!\s)[^$\n]{1,80}?[\^_\\{}][^$\n]{0,80}?\$(?!\w)/);
+  if (raw) out.push('unrendered math in an output: ' + raw[0].trim().slice(0, 60));
+}
+return out;
+"""
+
+
+# MathJax typesets after the load event: the page is checked once it has (at most 20 s)
+_WAIT_FOR_MATHJAX = """
+const done = arguments[arguments.length - 1];
+const t0 = Date.now();
+(function wait() {
+  const mj = window.MathJax;
+  if (mj && mj.startup && mj.startup.promise) {
+    mj.startup.promise.then(() => done());
+  } else if (Date.now() - t0 > 20000 || !document.querySelector('script[src*="mathjax"]')) {
+    done();
+  } else {
+    setTimeout(wait, 100);
+  }
+})();
+"""
+
+
+def browser_problems(html_dir: Path, width: int = 1280) -> list[str]:
+    """Open every page of ``html_dir`` in headless Chromium at ``width`` px and report
+    its JavaScript errors, broken images, over-wide tables and figures, raw math and
+    progress bars (``_IN_PAGE``)."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"):
+        options.add_argument(flag)
+    options.add_argument(f"--window-size={width},1000")
+    options.binary_location = shutil.which("chromium")
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
+    problems = []
+    try:
+        driver.set_page_load_timeout(60)
+        for page in pages(html_dir):
+            name = page.relative_to(html_dir)
+            driver.get(page.resolve().as_uri())
+            driver.execute_async_script(_WAIT_FOR_MATHJAX)
+            for entry in driver.get_log("browser"):
+                if entry.get("level") == "SEVERE":
+                    problems.append(f"{name}: a JavaScript error: {entry.get('message', '')[:200]}")
+            problems += [f"{name}: {p}" for p in driver.execute_script(_IN_PAGE)]
+    finally:
+        driver.quit()
+    return problems

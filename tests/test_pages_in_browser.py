@@ -1,0 +1,99 @@
+"""The rendered pages, checked as a reader meets them: the static checks on hand-made
+HTML, the browser checks (headless Chromium through Selenium) on hand-made pages with
+one fault each, and, once ``make book`` has built it, every page of the book.
+
+The browser tests need Debian's ``chromium`` and ``chromium-driver`` (``.ci/run``
+installs them when missing); without them they are skipped, saying why."""
+
+from pathlib import Path
+
+import pytest
+
+from qdnb.book import pagecheck
+from qdnb.core import paths
+
+PAGE = """<!DOCTYPE html><html><head><meta charset="utf-8"><style>
+body {{ margin: 0; }} article.bd-article {{ width: 700px; }}
+.qdnb-table {{ overflow-x: auto; max-width: 100%; }}
+</style>{head}</head><body><article class="bd-article">
+<p>Prose with <span class="math">\\(x^2\\)</span> rendered.</p>
+<div class="cell_output docutils container"><div class="output"><div>
+{output}
+</div></div></div>
+</article></body></html>"""
+
+CLEAN = (
+    '<div class="qdnb-table"><table><thead><tr><th>method</th><th>value</th></tr></thead>'
+    '<tbody><tr><th>ME</th><td class="num">1.5</td></tr></tbody></table></div>'
+    "<p>budget: 10<sup>6</sup> steps, a price of $5</p>"
+)
+FAULTS = {
+    "js_error": ("<script>const a = 1; const a = 2;</script>", CLEAN, "a JavaScript error"),
+    "broken_image": ("", CLEAN + '<img src="missing.png" alt="x">', "a broken image"),
+    "wide_figure": ("", '<img style="width:900px" src="ok.png" alt="x">', "wider than the column"),
+    "raw_math": ("", "<p>the thesis used $10^6$ steps</p>", "unrendered math"),
+    "progress_bar": (
+        "",
+        "<pre>QDT(ME): 100%|██████████| 2/2 [00:08&lt;00:00,  4.46s/it]</pre>",
+        "a progress bar",
+    ),
+}
+PNG_1x1 = bytes.fromhex(
+    "89504e470d0a1a0a0000000d4948445200000001000000010806000000"
+    "1f15c4890000000d49444154789c6360000002000001e221bc330000000049454e44ae426082"
+)
+
+
+def write_pages(tmp_path: Path, names) -> Path:
+    html = tmp_path / "html"
+    html.mkdir()
+    (html / "ok.png").write_bytes(PNG_1x1)
+    (html / "index.html").write_text(PAGE.format(head="", output=CLEAN))
+    for name in names:
+        head, output, _ = FAULTS[name]
+        (html / f"{name}.html").write_text(PAGE.format(head=head, output=output))
+    return html
+
+
+def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_path):
+    html = write_pages(tmp_path, ["raw_math", "progress_bar"])
+    (html / "pandas.html").write_text(
+        PAGE.format(
+            head="",
+            output='<table border="1" class="dataframe"><tbody><tr><th>0</th><td>QD-PG reaches '
+            "the goal with 10x fewer...</td></tr></tbody></table>",
+        )
+    )
+    problems = pagecheck.static_problems(html)
+    assert any("raw_math.html: raw LaTeX" in p and "$10^6$" in p for p in problems)
+    assert any("progress_bar.html: a progress bar" in p for p in problems)
+    assert any("pandas.html: a pandas table shows its 0, 1, 2" in p for p in problems)
+    assert any("pandas.html: a table cell cut to '...'" in p for p in problems)
+    assert not [p for p in problems if p.startswith("index.html")]  # the clean page
+
+
+browser = pytest.mark.skipif(
+    pagecheck.browser_available() is not None, reason=str(pagecheck.browser_available())
+)
+
+
+@browser
+def test_the_browser_finds_each_fault_on_its_page_and_none_on_a_clean_one(tmp_path):
+    html = write_pages(tmp_path, list(FAULTS))
+    problems = pagecheck.browser_problems(html)
+    for name, (_, _, what) in FAULTS.items():
+        assert any(p.startswith(f"{name}.html: ") and what in p for p in problems), name
+    assert not [p for p in problems if p.startswith("index.html")], problems
+
+
+BUILT = paths.BOOK / "_build" / "html"
+
+
+@browser
+@pytest.mark.skipif(
+    not (BUILT / "index.html").exists(), reason="no built book: `make book` first (CI does)"
+)
+def test_every_page_of_the_built_book_reads_clean_in_a_browser():
+    assert len(pagecheck.pages(BUILT)) >= 9  # the intro, seven chapters, the references
+    problems = pagecheck.static_problems(BUILT) + pagecheck.browser_problems(BUILT)
+    assert problems == []
