@@ -15,14 +15,70 @@ from __future__ import annotations
 import html as html_lib
 import re
 import shutil
+from html.parser import HTMLParser
 from pathlib import Path
 
 # a progress bar as tqdm draws it: "40%|████      | 2/5 [00:01<00:02, 1.2it/s]"
 PROGRESS_BAR = re.compile(r"\d+%\|.*\|\s*\d+/\d+|\|\s*\d+/\d+\s*\[\d")
 # inline math that no renderer took: "$10^6$", "$A^0$" (a price like "$5" is not math)
 RAW_MATH = re.compile(r"(?<![\\$\w])\$(?!\s)[^$\n<>]{1,80}?[\^_\\{}][^$\n<>]{0,80}?(?<!\s)\$(?!\w)")
-_OUTPUT = re.compile(r'<div class="cell_output[^"]*">(.*?)</div>\s*</div>\s*</div>', re.S)
 _TAG = re.compile(r"<[^>]+>")
+
+
+class _Outputs(HTMLParser):
+    """The cells' outputs of a page: for each ``div.cell_output``, its text (math that
+    MyST rendered left out) and its tables' HTML."""
+
+    VOID = {"br", "img", "hr", "meta", "link", "input", "col", "area", "base", "wbr", "source"}
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.outputs: list[dict[str, list[str]]] = []
+        self.stack: list[tuple[str, bool, bool]] = []  # (tag, opens an output, opens math)
+        self.depth = self.math = 0
+        self.table: list[str] | None = None
+
+    def handle_starttag(self, tag, attrs):
+        if tag in self.VOID:
+            return
+        classes = (dict(attrs).get("class") or "").split()
+        opens_output = tag == "div" and "cell_output" in classes and not self.depth
+        opens_math = self.depth > 0 and "math" in classes
+        self.stack.append((tag, opens_output, opens_math))
+        if opens_output:
+            self.outputs.append({"text": [], "tables": []})
+            self.depth = 1
+        elif self.depth:
+            self.depth += 1
+        self.math += opens_math
+        if self.depth and tag == "table":
+            self.table = []
+        if self.table is not None:
+            self.table.append(self.get_starttag_text() or "")
+
+    def handle_endtag(self, tag):
+        if tag in self.VOID:
+            return
+        while self.stack:
+            open_tag, opened_output, opened_math = self.stack.pop()
+            if self.depth:
+                self.depth -= 1
+            self.math -= opened_math
+            if opened_output:
+                self.depth = 0
+            if open_tag == tag:
+                break
+        if self.table is not None:
+            self.table.append(f"</{tag}>")
+            if tag == "table":
+                self.outputs[-1]["tables"].append("".join(self.table))
+                self.table = None
+
+    def handle_data(self, data):
+        if self.depth and not self.math:
+            self.outputs[-1]["text"].append(data)
+        if self.table is not None:
+            self.table.append(html_lib.escape(data))
 
 
 def pages(html_dir: Path) -> list[Path]:
@@ -45,23 +101,22 @@ def static_problems(html_dir: Path) -> list[str]:
     problems = []
     for page in pages(html_dir):
         name = page.relative_to(html_dir)
-        source = page.read_text(errors="ignore")
-        for block in _OUTPUT.findall(source):
-            # math MyST rendered sits in a math span: drop it before looking for raw $..$
-            text = _text(re.sub(r'<span class="math[^"]*">.*?</span>', " ", block, flags=re.S))
+        parser = _Outputs()
+        parser.feed(page.read_text(errors="ignore"))
+        for output in parser.outputs:
+            text = "".join(output["text"])
             for m in RAW_MATH.finditer(text):
                 problems.append(f"{name}: raw LaTeX in an output: {m.group(0)!r}")
             for line in text.splitlines():
                 if PROGRESS_BAR.search(line):
                     problems.append(f"{name}: a progress bar in an output: {line.strip()[:80]!r}")
-            for table in re.findall(
-                r'<table[^>]*class="[^"]*dataframe[^"]*"[^>]*>.*?</table>', block, re.S
-            ):
-                if re.search(r"<th>\s*0\s*</th>\s*<td", table):
+            for table in output["tables"]:
+                pandas = re.search(r'<table[^>]*class="[^"]*dataframe', table)
+                if pandas and re.search(r"<th[^>]*>\s*0\s*</th>\s*<td", table):
                     problems.append(f"{name}: a pandas table shows its 0, 1, 2... index")
-            for cell in re.findall(r"<td[^>]*>(.*?)</td>", block, re.S):
-                if _text(cell).strip().endswith("..."):
-                    problems.append(f"{name}: a table cell cut to '...': {_text(cell)[:60]!r}")
+                for cell in re.findall(r"<td[^>]*>(.*?)</td>", table, re.S):
+                    if _text(cell).strip().endswith("..."):
+                        problems.append(f"{name}: a table cell cut to '...': {_text(cell)[:60]!r}")
     return problems
 
 

@@ -43,7 +43,7 @@ def _cell(claim: dict[str, str] | None, summary: dict | None) -> str:
     if summary is None:
         return NOT_RUN
     if claim is None:
-        return "ran, claim not recorded (re-run the page)"
+        return "ran before claims were itemised"
     numbers = html.escape(claim["numbers"], quote=False).replace("|", "&#124;")
     return f'{SYMBOL[claim["status"]]}<br><span class="qdnb-numbers">{numbers}</span>'
 
@@ -76,13 +76,14 @@ def scorecard(by_scale: dict[str, dict[str, dict | None]]) -> str:
                 + " | ".join(NOT_RUN if runs[s] is None else "ran" for s in scales)
                 + " |"
             )
-        for claim_id, text in rows.items():
+        for i, (claim_id, text) in enumerate(rows.items()):
             cells = []
             for s in scales:
                 found = {c["id"]: c for c in claims_of(runs[s]) or []}
                 cells.append(_cell(found.get(claim_id), runs[s]))
             text = html.escape(text, quote=False)
-            lines.append(f"| {link} | {text} | " + " | ".join(cells) + " |")
+            page = link if i == 0 else ""  # the page once, atop its claims
+            lines.append(f"| {page} | {text} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -122,9 +123,11 @@ def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
     if scale == "tiny":
         lines.append(
             "**Scale `tiny` is a code-path check only: the numbers on this page are not "
-            "evidence.** "
+            "evidence.** Every loop runs a few iterations, in minutes, and the claims are not "
+            "expected to show."
         )
-    lines.append(f"`{scale}`: {SCALE_MEANING[scale]}.")
+    else:
+        lines.append(f"Scale `{scale}`: {SCALE_MEANING[scale]}.")
     if summary is None:
         lines += ["", "This page has no run record (`summary.json`).", "````"]
         return "\n".join(lines)

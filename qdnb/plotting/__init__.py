@@ -42,7 +42,7 @@ METHOD_COLORS = {
 # What each axis of an environment's behaviour descriptor measures (QDax's order for the feet)
 DESCRIPTOR_LABELS = {
     "ant_omni": ("final x (m)", "final y (m)"),
-    "halfcheetah_uni": ("front foot: share of steps on the ground", "back foot: share of steps"),
+    "halfcheetah_uni": ("front foot contact (share)", "back foot contact (share)"),
 }
 
 
