@@ -7,9 +7,31 @@ repertoires; the Chapter 3 pages, QD-PG's results) runs after it on the same wor
 while the groups share the two workers."""
 
 import json
+from pathlib import Path
+
+import nbformat
 
 from qdnb.book import runner
 from qdnb.core import paths
+
+
+def write_notebook(path: Path, *cells) -> Path:
+    """A notebook with a ``parameters`` cell (``scale = 'tiny'``) and then ``cells`` (a
+    source, or a ``(source, tags)`` pair each), on the ``python3`` kernel, at ``path``."""
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]})]
+    for cell in cells:
+        source, tags = cell if isinstance(cell, tuple) else (cell, [])
+        nb.cells.append(nbformat.v4.new_code_cell(source, metadata={"tags": tags} if tags else {}))
+    nb.metadata["kernelspec"] = {
+        "name": "python3",
+        "display_name": "Python 3",
+        "language": "python",
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    nbformat.write(nb, path)
+    return path
+
 
 GROUPS = {
     "ch3": ("ch3_qdpg", "ch3_baselines", "ch3_evolution"),

@@ -8,6 +8,7 @@ import nbformat
 import numpy as np
 import pandas as pd
 import pytest
+from notebook_runs import write_notebook
 
 matplotlib.use("Agg")
 
@@ -61,10 +62,9 @@ def test_a_figure_wider_than_the_column_or_without_caption_is_refused():
 
 
 def test_a_shown_figure_becomes_a_captioned_figure_of_the_page(tmp_path):
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [
-        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
-        nbformat.v4.new_code_cell(
+    src = write_notebook(
+        tmp_path / "figure.ipynb",
+        (
             "import matplotlib.pyplot as plt\n"
             "import pandas as pd\n"
             "from IPython.display import display\n"
@@ -75,16 +75,9 @@ def test_a_shown_figure_becomes_a_captioned_figure_of_the_page(tmp_path):
             "ax.plot([0, 1])\n"
             "show(fig, 'A line, $y = x$.', 'A rising line.', 'fig-line')\n"
             "print('after the figure')",
-            metadata={"tags": ["hide-input"]},
+            ["hide-input"],
         ),
-    ]
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    src = tmp_path / "figure.ipynb"
-    nbformat.write(nb, src)
+    )
     out = runner.execute(src, tmp_path / "out" / "figure.ipynb", {"scale": "tiny"}, "f", False)
     executed = nbformat.read(out, as_version=4)
     outputs = executed.cells[-1].outputs

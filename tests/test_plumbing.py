@@ -6,6 +6,7 @@ import tomllib
 
 import nbformat
 import pytest
+from notebook_runs import write_notebook
 
 from qdnb.book import registry, runner, thesis
 from qdnb.book.provenance import Run
@@ -50,18 +51,9 @@ def test_cli_rejects_bad_names_before_running_anything():
 
 def test_kernels_get_their_scales_xla_flags(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_FLAGS", raising=False)
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [
-        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
-        nbformat.v4.new_code_cell("import os\nprint(repr(os.environ.get('XLA_FLAGS')))"),
-    ]
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    src = tmp_path / "flags.ipynb"
-    nbformat.write(nb, src)
+    src = write_notebook(
+        tmp_path / "flags.ipynb", "import os\nprint(repr(os.environ.get('XLA_FLAGS')))"
+    )
     printed = {}
     for s in ("tiny", "small"):
         out = runner.execute(
@@ -77,19 +69,10 @@ def test_kernels_get_their_scales_xla_flags(tmp_path, monkeypatch):
 
 
 def test_a_failing_notebook_names_the_cell_and_leaves_the_partial_copy(tmp_path):
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [
-        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
-        nbformat.v4.new_code_cell("print('before')"),
-        nbformat.v4.new_code_cell("raise RuntimeError('boom ' + scale)"),
-    ]
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    src, out = tmp_path / "bad.ipynb", tmp_path / "out" / "bad.ipynb"
-    nbformat.write(nb, src)
+    src = write_notebook(
+        tmp_path / "bad.ipynb", "print('before')", "raise RuntimeError('boom ' + scale)"
+    )
+    out = tmp_path / "out" / "bad.ipynb"
     with pytest.raises(runner.NotebookFailed) as err:
         runner.execute(src, out, {"scale": "small"}, "bad", progress=False)
     message = str(err.value)
@@ -313,20 +296,10 @@ def test_panel_grid_wraps_panels_into_rows():
 
 
 def test_the_notebooks_progress_bars_stream_to_the_terminal(tmp_path, capfd):
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [
-        nbformat.v4.new_code_cell("scale = 'tiny'", metadata={"tags": ["parameters"]}),
-        nbformat.v4.new_code_cell(
-            "from tqdm import tqdm\nfor _ in tqdm(range(3), desc='inner loop'):\n    pass"
-        ),
-    ]
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    src = tmp_path / "bars.ipynb"
-    nbformat.write(nb, src)
+    src = write_notebook(
+        tmp_path / "bars.ipynb",
+        "from tqdm import tqdm\nfor _ in tqdm(range(3), desc='inner loop'):\n    pass",
+    )
     out = runner.execute(
         src, tmp_path / "out" / "bars.ipynb", {"scale": "tiny"}, "bars", progress=True
     )
