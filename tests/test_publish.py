@@ -24,7 +24,10 @@ def fake_run(scale="tiny", name="ch2_primer"):
     """A finished run as the runner leaves it, with a parameter file and checkpoints."""
     d = paths.run_dir(scale, name)
     nb = nbformat.v4.new_notebook()
-    nb.cells = [nbformat.v4.new_markdown_cell("# The title"), nbformat.v4.new_code_cell("1 + 1")]
+    nb.cells = [
+        nbformat.v4.new_markdown_cell("# The title\n\nThe chapter's introduction."),
+        nbformat.v4.new_code_cell("1 + 1"),
+    ]
     nbformat.write(nb, d / f"{name}.ipynb")
     summary = {
         "notebook": name,
@@ -135,12 +138,13 @@ def test_an_imported_page_opens_with_its_banner_and_the_status_says_imported(run
     assert cells[0].source == "# The title" and "At a glance" in cells[1].source
     assert "published run from" in cells[1].source
     assert "A published run, imported" in cells[2].source
+    assert cells[3].source == "The chapter's introduction."
     assert "published run from" in runner.status_table("tiny")
     # a local run: its title, its box, its cells
     (runs / "tiny" / "ch2_primer" / publish.IMPORTED).unlink()
     runner.copy_page("ch2_primer", "tiny", page)
     cells = nbformat.read(page, as_version=4).cells
-    assert len(cells) == 3 and "computed by this build" in cells[1].source
+    assert len(cells) == 4 and "computed by this build" in cells[1].source
 
 
 def test_the_cli_refuses_a_bad_archive_with_a_clear_error(tmp_path):

@@ -497,6 +497,11 @@ def copy_page(name: str, scale: str, dest: Path) -> None:
     opening = [nbformat.v4.new_markdown_cell(box)]
     if record is not None:
         opening.append(nbformat.v4.new_markdown_cell(publish.banner(record)))
+    # the box right under the page's title, before the chapter's introduction
+    title, _, introduction = nb.cells[0].source.partition("\n")
+    if title.startswith("# ") and introduction.strip():
+        nb.cells[0].source = title
+        opening.append(nbformat.v4.new_markdown_cell(introduction.strip("\n")))
     nb.cells[1:1] = opening
     book_figures(nb)
     atomic_write_bytes(dest, nbformat.writes(nb).encode())
