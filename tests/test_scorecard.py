@@ -7,6 +7,8 @@ import pytest
 from qdnb.book import runner, scorecard
 from qdnb.core import claims, paths
 
+HOLDS, FAILS, CANNOT = (scorecard.SYMBOL[k] for k in ("holds", "fails", "cannot show"))
+
 
 @pytest.fixture
 def runs(tmp_path, monkeypatch):
@@ -39,10 +41,10 @@ def test_the_scorecard_lists_each_claim_by_scale_with_its_numbers(runs):
     table = scorecard.scorecard(scorecard.summaries())
     (row,) = [line for line in table.splitlines() if "The FLT beats" in line]
     cells = [c.strip() for c in row.split(" | ")]
-    assert cells[2].startswith("✗ fails") and "0.38 vs 0.0035" in cells[2]
-    assert cells[3].startswith("✓ holds") and "0.01 vs 0.02" in cells[3]
+    assert cells[2].startswith(FAILS) and "0.38 vs 0.0035" in cells[2]
+    assert cells[3].startswith(HOLDS) and "0.01 vs 0.02" in cells[3]
     assert cells[4].rstrip(" |") == scorecard.NOT_RUN  # no paper run
-    assert any("QD-PG is faster" in r and "— cannot show" in r for r in table.splitlines())
+    assert any("QD-PG is faster" in r and CANNOT in r for r in table.splitlines())
     # a page with no run at any scale still has its row
     assert "*no claim recorded yet*" in table and "[Ch. 4: the QDT](chapters/ch4_qdt)" in table
     tally = scorecard.tally(scorecard.summaries())
@@ -59,8 +61,8 @@ def test_a_page_opens_with_its_claims_and_at_tiny_a_warning(runs):
     )
     assert box.startswith("````{admonition} At a glance") and ":class: warning" in box
     assert "code-path check only" in box and "not evidence" in box
-    assert "| NS reaches | ✗ fails | 0/2 |" in box and "12 s" in box and "2 CPU" in box
+    assert f"| NS reaches | {FAILS} | 0/2 |" in box and "12 s" in box and "2 CPU" in box
     small = scorecard.chapter_box("ch2_primer", "small", None)
     assert ":class: note" in small and "not evidence" not in small and "no run record" in small
     status = runner.status_table("tiny")
-    assert "ran at scale tiny" in status and "| NS reaches | ✗ fails<br>" in status
+    assert "ran at scale tiny" in status and f"| NS reaches | {FAILS}<br>" in status

@@ -23,7 +23,8 @@ SCALE_MEANING = {
     "and spaces shrunk by the rule in the page's scale cell; claims should show qualitatively",
     "paper": "the thesis's budgets, widths and spaces; the thesis's numbers should show",
 }
-SYMBOL = {HOLDS: "✓ holds", FAILS: "✗ fails", CANNOT_SHOW: "— cannot show"}
+# (no-break spaces: a status never wraps in a narrow column)
+SYMBOL = {HOLDS: "✓\u00a0holds", FAILS: "✗\u00a0fails", CANNOT_SHOW: "—\u00a0cannot\u00a0show"}
 NOT_RUN = "not run"
 
 
