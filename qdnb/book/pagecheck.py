@@ -18,8 +18,9 @@ import shutil
 from html.parser import HTMLParser
 from pathlib import Path
 
-# a progress bar as tqdm draws it: "40%|████      | 2/5 [00:01<00:02, 1.2it/s]"
-PROGRESS_BAR = re.compile(r"\d+%\|.*\|\s*\d+/\d+|\|\s*\d+/\d+\s*\[\d")
+# a progress bar as tqdm draws it, "40%|████      | 2/5 [00:01<00:02, 1.2it/s]", or with no
+# bar, "40%| 2/5" (the runner drops the same lines from the pages it tidies)
+PROGRESS_BAR = re.compile(r"\d+%\|.*\d+/\d+|\|\s*\d+/\d+\s*\[")
 # inline math that no renderer took: "$10^6$", "$A^0$" (a price like "$5" is not math)
 RAW_MATH = re.compile(r"(?<![\\$\w])\$(?!\s)[^$\n<>]{1,80}?[\^_\\{}][^$\n<>]{0,80}?(?<!\s)\$(?!\w)")
 _TAG = re.compile(r"<[^>]+>")

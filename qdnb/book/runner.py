@@ -192,11 +192,11 @@ def _last_write(line: str) -> str:
     return parts[-1] if parts else ""
 
 
-# A tqdm bar ("desc: 40%|████      | 2/5 [00:01<00:02, 1.2it/s]"), a cursor move of
-# interleaved bars, and the checkpoint store's notices: terminal output, not the page's
-# (the run's checkpoints are in its summary.json and the page's opening box).
+# A tqdm bar (``pagecheck.PROGRESS_BAR``), a cursor move of interleaved bars, and the
+# checkpoint store's notices: terminal output, not the page's (the run's checkpoints are in
+# its summary.json and the page's opening box).
 _TERMINAL_ONLY = re.compile(
-    r"\d+%\|.*\d+/\d+|\|\s*\d+/\d+\s*\[|\x1b\[[0-9;]*[A-Za-z]|^checkpoints: "
+    pagecheck.PROGRESS_BAR.pattern + r"|\x1b\[[0-9;]*[A-Za-z]|^checkpoints: "
 )
 
 
@@ -383,7 +383,7 @@ def status_table(scale: str) -> str:
             lines.append(f"| {link} | no run record (`summary.json`) | — | — | — |")
         else:
             lines.append(
-                f"| {link} | {scorecard.where(scale, name, summary)} | {summary['seed']} | "
+                f"| {link} | {scorecard.where(scale, name)} | {summary['seed']} | "
                 f"{summary.get('device', '—')} | {summary['wall_time_s']:.0f} s |"
             )
     return "\n".join(lines) + "\n"

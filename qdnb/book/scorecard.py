@@ -40,16 +40,21 @@ def claims_of(summary: dict | None) -> list[dict[str, str]] | None:
     return summary.get("results", {}).get("claims")
 
 
+def _table_text(text: str) -> str:
+    """``text`` safe inside a Markdown table's cell (HTML escaped, no bare ``|``)."""
+    return html.escape(text, quote=False).replace("|", "&#124;")
+
+
 def _cell(claim: dict[str, str] | None, summary: dict | None) -> str:
     if summary is None:
         return NOT_RUN
     if claim is None:
         return "ran before claims were itemised"
-    numbers = html.escape(claim["numbers"], quote=False).replace("|", "&#124;")
+    numbers = _table_text(claim["numbers"])
     return f'{SYMBOL[claim["status"]]}<br><span class="qdnb-numbers">{numbers}</span>'
 
 
-def where(scale: str, name: str, summary: dict[str, Any]) -> str:
+def where(scale: str, name: str) -> str:
     """Where a run was computed: here, or the host and date of a published run."""
     record = publish.imported(scale, name)
     if record:
@@ -66,10 +71,11 @@ def scorecard(by_scale: dict[str, dict[str, dict | None]]) -> str:
     ]
     for chapter in registry.CHAPTERS:
         runs = {s: by_scale[s].get(chapter.name) for s in scales}
+        found = {s: {c["id"]: c for c in claims_of(runs[s]) or []} for s in scales}
         rows: dict[str, str] = {}  # id -> text, in the order the runs list them
         for s in scales:
-            for c in claims_of(runs[s]) or []:
-                rows.setdefault(c["id"], c["claim"])
+            for claim_id, c in found[s].items():
+                rows.setdefault(claim_id, c["claim"])
         link = f"[{chapter.short}](chapters/{chapter.name})"
         if not rows:
             lines.append(
@@ -78,13 +84,9 @@ def scorecard(by_scale: dict[str, dict[str, dict | None]]) -> str:
                 + " |"
             )
         for i, (claim_id, text) in enumerate(rows.items()):
-            cells = []
-            for s in scales:
-                found = {c["id"]: c for c in claims_of(runs[s]) or []}
-                cells.append(_cell(found.get(claim_id), runs[s]))
-            text = html.escape(text, quote=False)
+            cells = [_cell(found[s].get(claim_id), runs[s]) for s in scales]
             page = link if i == 0 else ""  # the page once, atop its claims
-            lines.append(f"| {page} | {text} | " + " | ".join(cells) + " |")
+            lines.append(f"| {page} | {_table_text(text)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -144,7 +146,7 @@ def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
         f"Seed {summary.get('seed')} · {device} ({summary.get('device', '')}) · "
         f"{summary.get('wall_time_s', 0):.0f} s"
         + (f", {len(resumed)} loop(s) resumed from checkpoints" if resumed else "")
-        + f" · {where(scale, name, summary)}, commit `{str(summary.get('git_sha', ''))[:12]}`.",
+        + f" · {where(scale, name)}, commit `{str(summary.get('git_sha', ''))[:12]}`.",
         "",
     ]
     records = claims_of(summary)
@@ -154,8 +156,7 @@ def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
     else:
         lines += ["| claim | status | numbers |", "|---|---|---|"]
         lines += [
-            f"| {html.escape(c['claim'], quote=False)} | {SYMBOL[c['status']]} | "
-            f"{html.escape(c['numbers'], quote=False).replace('|', '&#124;')} |"
+            f"| {_table_text(c['claim'])} | {SYMBOL[c['status']]} | {_table_text(c['numbers'])} |"
             for c in records
         ]
     lines.append("````")

@@ -237,9 +237,15 @@ def source(method: str, setting: str) -> str:
     return SOURCES.get((method, setting), SOURCES.get(setting, ""))
 
 
+def claimed_baselines(result: Result) -> list[str]:
+    """The baselines the page's claim compares with: those run on Point-Maze."""
+    return [name for name in BASELINES if name in result.methods("pointmaze")]
+
+
 def claims(result: Result) -> list[tuple[str, bool, str]]:
-    """The page's claim on Point-Maze, one row per baseline: QD-PG's final performance
-    beats the baseline's (on the mean over seeds and on most of QD-PG's seeds)."""
+    """The page's claim on Point-Maze, one row per baseline (``claimed_baselines``):
+    QD-PG's final performance beats the baseline's (on the mean over seeds and on most
+    of QD-PG's seeds)."""
     pm = result.methods("pointmaze")
     qdpg = pm["QD-PG"].final_performance
     return [
@@ -248,8 +254,7 @@ def claims(result: Result) -> list[tuple[str, bool, str]]:
             beats(qdpg, pm[name].final_performance),
             f"{per_seed(qdpg)} vs {per_seed(pm[name].final_performance)}",
         )
-        for name in BASELINES
-        if name in pm
+        for name in claimed_baselines(result)
     ]
 
 
@@ -264,9 +269,7 @@ def summary_results(cfg: BaselinesConfig, result: Result) -> dict[str, Any]:
         "claims_total": len(held),
         "claims": [
             claim_records.record(f"ch3_baselines/{name}", text, ok, numbers)
-            for name, (text, ok, numbers) in zip(
-                [n for n in BASELINES if n in result.methods("pointmaze")], held
-            )
+            for name, (text, ok, numbers) in zip(claimed_baselines(result), held)
         ],
         "num_seeds": {env_name: cfg.seeds(env_name) for env_name in ENVIRONMENTS},
         "qdpg_source": dict(result.qdpg_status),

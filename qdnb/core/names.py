@@ -16,5 +16,4 @@ READER_NAMES = {
     "flt": "FLT",
     "flt_teacher_forced": "FLT, true inputs (one step)",
     "mean_frame": "mean frame",
-    "persistence": "persistence",
 }

@@ -62,9 +62,9 @@ def method_color(name: str) -> str:
 
 
 def set_style() -> None:
-    """One style for every figure and table of the book: figures sized for the page's
-    column, drawn at twice their displayed resolution (``retina``: 220 dpi), and
-    DataFrames shown as ``tables.styled`` tables."""
+    """One style for every figure and table of the book: 9-point fonts, figures drawn at
+    twice their displayed resolution (``show``'s, and in Jupyter any other figure's:
+    ``retina``, 200 dpi), and DataFrames shown as ``tables.styled`` tables."""
     use_book_tables()
     try:
         from matplotlib_inline.backend_inline import set_matplotlib_formats
@@ -105,7 +105,7 @@ def show(fig: plt.Figure, caption: str, alt: str, name: str | None = None) -> No
 
     from IPython.display import display
 
-    width, height = fig.get_size_inches()
+    width = fig.get_size_inches()[0]
     if width > COLUMN_INCHES + 1e-6:
         plt.close(fig)
         raise ValueError(

@@ -67,9 +67,8 @@ def styled(df: pd.DataFrame, digits: int = DIGITS) -> str:
     show_index = not _has_default_index(df)
     head = []
     if show_index:
-        names = [n for n in df.index.names]
-        head.append("".join(f"<th>{html.escape(cell_text(n) if n else '')}</th>" for n in names))
-    head.append("".join(f"<th>{html.escape(_label(c))}</th>" for c in df.columns))
+        head += [f"<th>{html.escape(_label(n) if n else '')}</th>" for n in df.index.names]
+    head += [f"<th>{html.escape(_label(c))}</th>" for c in df.columns]
     rows = []
     for key, row in zip(df.index, df.itertuples(index=False, name=None)):
         cells = []
