@@ -54,4 +54,4 @@ lock:
 	rm -rf .lock-venv
 
 clean:
-	rm -rf book/_build book/chapters book/_status.md book/_extra
+	rm -rf book/_build book/chapters book/_status.md book/_paper_scale.md book/_extra

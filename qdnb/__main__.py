@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from qdnb.book import publish, runner
+from qdnb.core import paths
 from qdnb.core.config import SCALES
 
 
@@ -83,6 +84,24 @@ def main(argv: list[str] | None = None) -> int:
     imp = sub.add_parser("import", help="check a published run's archive and unpack it")
     imp.add_argument("archive")
     imp.add_argument("--replace", action="store_true", help="replace a run already here")
+    dry = sub.add_parser(
+        "dryrun",
+        help="run each long loop's first steps at a scale's shapes; project hours and memory",
+    )
+    dry.add_argument("notebooks", nargs="+", metavar="NOTEBOOK", help="notebook names, or all")
+    dry.add_argument(
+        "--scale", default="paper", help=f"one of {', '.join(SCALES)} (default: paper)"
+    )
+    dry.add_argument("--seed", type=int, default=0)
+    dry.add_argument(
+        "--out", default=None, help="the report (default: bench/results/<scale>_dryrun.json)"
+    )
+    dry.add_argument(
+        "--devices",
+        metavar="N",
+        default=None,
+        help="XLA host devices of the CPU kernels (as for run)",
+    )
     check = sub.add_parser(
         "check-pages", help="open every page of the built book in headless Chromium and report"
     )
@@ -119,6 +138,20 @@ def main(argv: list[str] | None = None) -> int:
             print(f"published: {publish.publish(args.scale, args.notebook, args.out)}")
         elif args.command == "import":
             print(f"imported: {publish.import_archive(args.archive, args.replace)}")
+        elif args.command == "dryrun":
+            from qdnb.book import dryrun
+            from qdnb.core.config import check_scale
+
+            check_scale(args.scale)
+            dryrun.resolve(args.notebooks)
+            set_devices(args.devices)
+            out = Path(args.out) if args.out else None
+            report = dryrun.dry_run(args.notebooks, args.scale, args.seed, out=out)
+            print(dryrun.text_table(report))
+            print(f"report: {paths.shown(out or dryrun.report_path(args.scale))}")
+            ran = dryrun.resolve(args.notebooks)
+            failed = [n for n in ran if report["notebooks"][n]["status"] != "ok"]
+            return 1 if failed else 0
         elif args.command == "check-pages":
             from qdnb.book import pagecheck
 

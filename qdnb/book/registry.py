@@ -92,8 +92,8 @@ def config(name: str, scale: str):
 
 
 def toc() -> str:
-    """The book's ``_toc.yml``: the intro, one page per chapter, how to reproduce the
-    book, the references."""
+    """The book's ``_toc.yml``: the intro, one page per chapter, what the ``paper``
+    scale needs, how to reproduce the book, the references."""
     lines = [
         "# Written by `python -m qdnb book` from qdnb.book.registry.CHAPTERS.",
         "format: jb-book",
@@ -101,5 +101,5 @@ def toc() -> str:
         "chapters:",
     ]
     lines += [f"  - file: chapters/{c.name}" for c in CHAPTERS]
-    lines += ["  - file: reproducing", "  - file: references"]
+    lines += ["  - file: paper_scale", "  - file: reproducing", "  - file: references"]
     return "\n".join(lines) + "\n"

@@ -389,6 +389,14 @@ def status_table(scale: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def paper_scale_page() -> str:
+    """The body of "Running at paper scale": the committed dry run's report."""
+    from qdnb.book import dryrun
+
+    path = dryrun.report_path("paper")
+    return dryrun.page_markdown(json.loads(path.read_text()) if path.exists() else None)
+
+
 def copy_mathjax(extra_dir: Path) -> None:
     """MathJax 3, served from the book itself (no CDN).
 
@@ -541,6 +549,7 @@ def build_book(
     for name in names:
         copy_page(name, scale, chapters / f"{name}.ipynb")
     (paths.BOOK / "_status.md").write_text(status_table(scale))
+    (paths.BOOK / "_paper_scale.md").write_text(paper_scale_page())
     (paths.BOOK / "_toc.yml").write_text(registry.toc())
     copy_mathjax(paths.BOOK / "_extra")
     exe = Path(sys.executable).parent / "jupyter-book"

@@ -31,7 +31,7 @@ from qdnb.chapters.ch4_reproducibility import (
 )
 from qdnb.chapters.ch4_reproducibility import run_environment as run_chapter4
 from qdnb.core import claims as claim_records
-from qdnb.core import paths
+from qdnb.core import dryrun, paths
 from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
 from qdnb.core.loops import map_concurrently
@@ -377,8 +377,10 @@ def run_environment(
     k_zones, k_goals, k_seeds = jax.random.split(key, 3)
     zones = cvt_centroids(k_zones, task.zones, low, high, cfg.cvt_samples, cfg.cvt_iterations)
     goals = cvt_centroids(k_goals, task.goals, low, high, cfg.cvt_samples, cfg.cvt_iterations)
-    player = Player(env, network, chunk=repro_cfg.env_batch)
-    recorder = Player(env, network, chunk=repro_cfg.env_batch, record=True)
+    player = Player(env, network, chunk=repro_cfg.env_batch, name=f"{env_name} test episodes")
+    recorder = Player(
+        env, network, chunk=repro_cfg.env_batch, record=True, name=f"{env_name} dataset episodes"
+    )
     model = QDT(
         env.action_size,
         env.episode_length,
@@ -440,73 +442,80 @@ def run_environment(
 
     per_seed = []
     num_rep_seeds = num_seeds_of(repertoires)
-    for i in range(cfg.num_seeds):
-        k_sel, k_rec, k_acc, k_train, k_eval, k_prune = jax.random.split(
-            jax.random.fold_in(k_seeds, i), 6
-        )
-        full = i < cfg.num_full_seeds
-        sources = SOURCES if full else CLAIM_SOURCES
-        reps = {m: seed_repertoire(repertoires[m], i % num_rep_seeds) for m in sources}
-        seed: dict[str, Any] = {
-            "repertoire": {},
-            "selection": {},
-            "teachers": {},
-            "datasets": {},
-            "qdt": {},
-            "generalization": {},
-            "full": full,
-        }
-        for m in sources:  # Section 4.5.2: the stored policy nearest to each goal
-            acc = accuracy(reps[m], goals, player.episodes(cfg.eval_episodes), k_acc)
-            seed["repertoire"][m] = {
-                "distance": np.asarray(acc.distance),
-                "spread": np.asarray(acc.spread),
-                "filled": int(np.sum(np.asarray(reps[m].filled))),
-            }
-        data = {}
-        for m in sources:  # Section 4.4.4
-            sel = select_policies(reps[m], zones, player, task.selection_episodes, k_sel)
-            seed["selection"][m] = sel
-            teachers = reps[m].replace(
-                fitnesses=jnp.full_like(reps[m].fitnesses, -jnp.inf)
-                .at[sel.cells]
-                .set(reps[m].fitnesses[sel.cells])
-            )  # only the kept policies: the QDT's demonstrators
-            acc = accuracy(teachers, goals, player.episodes(cfg.eval_episodes), k_acc)
-            seed["teachers"][m] = {
-                "distance": np.asarray(acc.distance),
-                "spread": np.asarray(acc.spread),
-            }
-            data[m] = record(reps[m], sel.cells, task.episodes_per_policy, recorder, k_rec)
-        if full:
-            every = np.flatnonzero(np.asarray(reps["ME-LS"].filled))
-            naive_epp = naive_episodes_per_policy(
-                seed["selection"]["ME-LS"].cells.size, task.episodes_per_policy, every.size
+    # a dry run trains the first seed only, which stands for all of them (each seed's work
+    # is the same); the others repeat its results: qdnb.core.dryrun
+    seeds_run = dryrun.count(f"{env_name} QDT seeds", cfg.num_seeds, 1)
+    with dryrun.repeats(cfg.num_seeds / seeds_run):
+        for i in range(seeds_run):
+            k_sel, k_rec, k_acc, k_train, k_eval, k_prune = jax.random.split(
+                jax.random.fold_in(k_seeds, i), 6
             )
-            data[NAIVE] = record(reps["ME-LS"], every, naive_epp, recorder, k_rec)
-            seed["naive_episodes_per_policy"] = naive_epp
-        for name in data:
-            seed["qdt"][name] = train(
-                data[name], k_train, k_eval, f"{env_name} seed {i} QDT({name})"
-            )
-        pruned = (
-            {
-                name: prune(
-                    data["ME-LS"], name, low, high, cfg.tiles, jax.random.fold_in(k_prune, j)
+            full = i < cfg.num_full_seeds
+            sources = SOURCES if full else CLAIM_SOURCES
+            reps = {m: seed_repertoire(repertoires[m], i % num_rep_seeds) for m in sources}
+            seed: dict[str, Any] = {
+                "repertoire": {},
+                "selection": {},
+                "teachers": {},
+                "datasets": {},
+                "qdt": {},
+                "generalization": {},
+                "full": full,
+            }
+            for m in sources:  # Section 4.5.2: the stored policy nearest to each goal
+                acc = accuracy(reps[m], goals, player.episodes(cfg.eval_episodes), k_acc)
+                seed["repertoire"][m] = {
+                    "distance": np.asarray(acc.distance),
+                    "spread": np.asarray(acc.spread),
+                    "filled": int(np.sum(np.asarray(reps[m].filled))),
+                }
+            data = {}
+            for m in sources:  # Section 4.4.4
+                sel = select_policies(reps[m], zones, player, task.selection_episodes, k_sel)
+                seed["selection"][m] = sel
+                teachers = reps[m].replace(
+                    fitnesses=jnp.full_like(reps[m].fitnesses, -jnp.inf)
+                    .at[sel.cells]
+                    .set(reps[m].fitnesses[sel.cells])
+                )  # only the kept policies: the QDT's demonstrators
+                acc = accuracy(teachers, goals, player.episodes(cfg.eval_episodes), k_acc)
+                seed["teachers"][m] = {
+                    "distance": np.asarray(acc.distance),
+                    "spread": np.asarray(acc.spread),
+                }
+                data[m] = record(reps[m], sel.cells, task.episodes_per_policy, recorder, k_rec)
+            if full:
+                every = np.flatnonzero(np.asarray(reps["ME-LS"].filled))
+                naive_epp = naive_episodes_per_policy(
+                    seed["selection"]["ME-LS"].cells.size, task.episodes_per_policy, every.size
                 )
-                for j, name in enumerate(PRUNINGS)
-            }
-            if full
-            else {}
-        )
-        for name in pruned:
-            res = train(pruned[name], k_train, k_eval, f"{env_name} seed {i} QDT(ME-LS, {name})")
-            if name in ("tiles", "upper"):
-                res["avg_distance_removed"] = float(res["distance"][removed[name]].mean())
-                res["avg_distance_kept"] = float(res["distance"][~removed[name]].mean())
-            seed["generalization"][name] = res
-        seed["datasets"] = {name: np.asarray(d.bd) for name, d in {**data, **pruned}.items()}
-        per_seed.append(seed)
+                data[NAIVE] = record(reps["ME-LS"], every, naive_epp, recorder, k_rec)
+                seed["naive_episodes_per_policy"] = naive_epp
+            for name in data:
+                seed["qdt"][name] = train(
+                    data[name], k_train, k_eval, f"{env_name} seed {i} QDT({name})"
+                )
+            pruned = (
+                {
+                    name: prune(
+                        data["ME-LS"], name, low, high, cfg.tiles, jax.random.fold_in(k_prune, j)
+                    )
+                    for j, name in enumerate(PRUNINGS)
+                }
+                if full
+                else {}
+            )
+            for name in pruned:
+                res = train(
+                    pruned[name], k_train, k_eval, f"{env_name} seed {i} QDT(ME-LS, {name})"
+                )
+                if name in ("tiles", "upper"):
+                    res["avg_distance_removed"] = float(res["distance"][removed[name]].mean())
+                    res["avg_distance_kept"] = float(res["distance"][~removed[name]].mean())
+                seed["generalization"][name] = res
+            seed["datasets"] = {name: np.asarray(d.bd) for name, d in {**data, **pruned}.items()}
+            per_seed.append(seed)
+    per_seed += [per_seed[-1]] * (cfg.num_seeds - seeds_run)
     return EnvironmentResult.collect(
         env_name, low, high, np.asarray(zones), np.asarray(goals), removed, per_seed
     )

@@ -315,7 +315,8 @@ def run_environment(
     offset = fitness_offset(env_name, cfg.episode_length)
     algorithms = build_algorithms(cfg, env, network, centroids, offset)
 
-    player = Player(env, network, chunk=cfg.env_batch)  # one compiled simulation for all the tests
+    # one compiled simulation for all the tests
+    player = Player(env, network, chunk=cfg.env_batch, name=f"{env_name} test episodes")
     per_seed = lambda f, elites, k: stack(
         [
             f(jax.tree.map(lambda x: x[i], elites), k_i)

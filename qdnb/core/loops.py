@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from qdnb.core import checkpoint
+from qdnb.core import checkpoint, dryrun
 
 
 def scan_in_chunks(
@@ -54,6 +54,11 @@ def scan_in_chunks(
         raise ValueError(
             f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}"
         )
+    if dryrun.active() is not None:  # the first steps at these shapes, timed: qdnb.core.dryrun
+        carry, outputs = dryrun.scan(step, carry, num_steps, desc)
+        if chunk_seconds is not None:
+            chunk_seconds.append(0.0)
+        return carry, outputs
     shape: list[Any] = []  # the per-step outputs' shapes, traced once if needed
 
     def output_shape() -> Any:
@@ -138,7 +143,7 @@ def map_concurrently(
     false.  For runs that share nothing (one per environment): XLA compiles and
     runs small programs on about one core each, so two such runs on two cores take
     little longer than one.  Each run's numbers do not depend on the threads."""
-    if not concurrent:
+    if not concurrent or dryrun.active() is not None:  # a dry run times each loop alone
         return {name: fn(name) for name in names}
     with ThreadPoolExecutor(max_workers=max(1, len(names))) as pool:
         futures = {name: pool.submit(fn, name) for name in names}

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from qdnb.core import dryrun
 from qdnb.core.evaluation import Evaluation
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import evaluate_policies
@@ -22,8 +23,10 @@ class Player:
     state-descriptor path comes back as its ``trajectory``; with ``record``, its
     ``obs``, ``action`` and ``valid`` steps instead (the QDT's datasets)."""
 
-    def __init__(self, env: Env, network: MLP, chunk: int, record: bool = False):
-        self.chunk = chunk
+    def __init__(
+        self, env: Env, network: MLP, chunk: int, record: bool = False, name: str = "episodes"
+    ):
+        self.chunk, self.name = chunk, name
         kept = ("obs", "action", "valid") if record else "next_state_descriptor"
 
         def play(genotypes, keys):
@@ -47,10 +50,15 @@ class Player:
         padded = jax.tree.map(
             lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), (genotypes, keys)
         )
-        outs = [
-            self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded))
-            for i in range(0, n + pad, self.chunk)
-        ]
+        chunks = dryrun.steps(
+            f"{self.name} ({self.chunk} per chunk)", range(0, n + pad, self.chunk), unit="chunk"
+        )
+        outs = []
+        for i in chunks:
+            outs.append(self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded)))
+            chunks.step_done(outs[-1])
+        # a dry run played the first chunks only: the others repeat them (same shapes)
+        outs = [outs[j % len(outs)] for j in range((n + pad) // self.chunk)]
         fitness, descriptor, path = (
             jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts) for parts in zip(*outs)
         )

@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from qdnb.core import dryrun
 from qdnb.core.evaluation import Evaluation
 from qdnb.core.loops import scan_in_chunks
 from qdnb.core.sharding import over_seeds, seed_slots
@@ -267,6 +268,12 @@ def run_seeds(
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
     initial batch.
     """
+    num_seeds = len(keys)
+    if num_seeds > 1 and dryrun.cutting():
+        return _dry_run_seeds(
+            algorithm, keys, num_iterations, chunk_size, track_bins, target,
+            progress, desc, keep_evaluations, chunk_seconds, on_chunk, stop,
+        )  # fmt: skip
     env = algorithm.env
     low, high = env.descriptor_low, env.descriptor_high
 
@@ -340,3 +347,21 @@ def run_seeds(
         lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history
     )
     return mine(states), mine(tracks), mine(history)
+
+
+def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, *args: Any) -> Any:
+    """``run_seeds`` in a dry run (``qdnb.core.dryrun``): one seed first.  When all the
+    seeds' steps would take under ``SLOW_STEP_S``, they then run at once, as in the full
+    run, and that is what is recorded; otherwise the one seed stands for all of them
+    (seeds side by side are independent copies of the same shapes: its time and memory
+    count once per seed) and its results are repeated in every seed's slot."""
+    num_seeds, desc = len(keys), args[5]
+    with dryrun.held_back() as one_seed, dryrun.repeats(num_seeds, side_by_side=True):
+        out = run_seeds(algorithm, keys[:1], *args)
+    slow = max((r.get("seconds_per_step", 0.0) for r in one_seed), default=0.0)
+    if slow * num_seeds <= dryrun.SLOW_STEP_S:
+        with dryrun.uncut():
+            return run_seeds(algorithm, keys, *args)
+    dryrun.count(f"{desc or 'loop'}: seeds side by side", num_seeds, 1)
+    dryrun.write(one_seed)
+    return jax.tree.map(lambda x: jnp.repeat(x, num_seeds, axis=0), out)

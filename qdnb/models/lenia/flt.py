@@ -34,7 +34,7 @@ import optax
 from flax import linen as nn
 from tqdm import tqdm
 
-from qdnb.core import checkpoint
+from qdnb.core import checkpoint, dryrun
 from qdnb.core.sharding import shard_batch
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.nets.transformer import Block, Cache, make_optimizer, run_blocks
@@ -382,11 +382,13 @@ def train(
         initial=start_step,
         total=cfg.train_steps,
     )
-    for i in bar:
+    steps = dryrun.steps(desc, bar, full=cfg.train_steps)  # a dry run: the first steps
+    for i in steps:
         began_step = time.perf_counter()
         params, opt_state, frame_sum, loss, drift = one(
             params, opt_state, frame_sum, jax.random.fold_in(k_train, i)
         )
+        steps.step_done(loss)
         if step_seconds is not None:
             jax.block_until_ready(params)
             step_seconds.append(time.perf_counter() - began_step)

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from qdnb.core import dryrun
 from qdnb.envs.player import Player
 from qdnb.qd.cvt import nearest
 from qdnb.qd.metrics import grid_cell
@@ -133,11 +134,16 @@ def record(
     """Each policy of ``cells`` plays ``episodes_per_policy`` episodes from random
     initial states (``player`` must be built with ``record=True``)."""
     cells = np.asarray(cells)
+    full = episodes_per_policy
+    # a dry run records about one chunk of episodes, and the full dataset's size
+    episodes_per_policy = dryrun.count(
+        f"{player.name} per policy", full, max(1, -(-player.chunk // max(cells.size, 1)))
+    )
     genotypes = jax.tree.map(
         lambda x: jnp.repeat(x[cells], episodes_per_policy, axis=0), repertoire.genotypes
     )
     ev = player.play(genotypes, jax.random.split(key, cells.size * episodes_per_policy))
-    return Trajectories(
+    data = Trajectories(
         bd=ev.descriptor,
         obs=ev.trajectory["obs"],
         actions=ev.trajectory["action"],
@@ -145,6 +151,15 @@ def record(
         fitness=ev.fitness,
         policy=jnp.asarray(np.repeat(cells, episodes_per_policy)),
     )
+    if dryrun.active() is not None:
+        size = dryrun.tree_bytes(data)
+        dryrun.record(
+            "data",
+            f"{player.name}: dataset",
+            bytes=size,
+            full_bytes=size * full // episodes_per_policy,
+        )
+    return data
 
 
 def naive_episodes_per_policy(num_selected: int, episodes_per_policy: int, num_filled: int) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from qdnb.core import checkpoint
+from qdnb.core import checkpoint, dryrun
 from qdnb.core.sharding import shard_batch
 from qdnb.models.qdt.data import Trajectories
 from qdnb.models.qdt.model import QDT, init_params
@@ -125,14 +125,11 @@ def fit(
             best, result.best_epoch = extra["best"], extra["best_epoch"]
             result.losses, result.evaluations = extra["losses"], extra["evaluations"]
             checkpoint.log(f"{saver.name!r} resumed after epoch {start} of {epochs}")
-    bar = tqdm(
-        range(start + 1, epochs + 1),
-        desc=desc,
-        disable=not progress,
-        leave=True,
-        initial=start,
-        total=epochs,
-    )
+    epochs_run = range(start + 1, epochs + 1)
+    dry = dryrun.active() is not None
+    if dry:  # one epoch, cut to its first batches, and one evaluation: qdnb.core.dryrun
+        epochs_run = epochs_run[:1]
+    bar = tqdm(epochs_run, desc=desc, disable=not progress, leave=True, initial=start, total=epochs)
     for epoch in bar:
         k_perm, k_drop, k_train = jax.random.split(k_train, 3)
         order = np.asarray(jax.random.permutation(k_perm, data.size))
@@ -140,13 +137,15 @@ def fit(
             order = np.resize(order, batch_size)
         batches = order[: order.size // batch_size * batch_size].reshape(-1, batch_size)
         losses = []
-        for i, index in enumerate(batches):
-            batch = jax.tree.map(lambda x: x[index], data)
+        steps = dryrun.steps(f"{desc} training", range(len(batches)), full=epochs * len(batches))
+        for i in steps:
+            batch = jax.tree.map(lambda x: x[batches[i]], data)
             params, opt_state, loss = step(params, opt_state, batch, jax.random.fold_in(k_drop, i))
             losses.append(loss)
+            steps.step_done(loss)
         result.losses.append(float(jnp.mean(jnp.stack(losses))))
-        if epoch % eval_every == 0:
-            scores = evaluate(params, epoch)
+        if epoch % eval_every == 0 or dry:
+            scores = dryrun.timed(f"{desc} rollouts", epochs // eval_every, evaluate, params, epoch)
             result.evaluations.append({"epoch": epoch, **scores})
             if scores["avg_distance"] < best:
                 best, result.best_epoch, result.params = scores["avg_distance"], epoch, params

@@ -1,0 +1,111 @@
+#!/usr/bin/env bash
+# What a session lent an H100/H200 for about ten minutes runs at once, in order:
+#
+#   1. the environment check: devices, package versions, the deterministic-ops flag;
+#   2. the primer at `paper` (about 141 s on one H100 before), then published as an archive;
+#   3. bench/scale_out.py --real: every stage's rate on the GPU's own devices;
+#   4. the dry run of the other chapters at `paper` on the GPU (python -m qdnb dryrun).
+#
+# Everything it writes goes under one folder, OUT (the first argument, else $OUT, else
+# bench/results/gpu_session/): log.txt, environment.json, the published archive,
+# scale_out_gpu.json, paper_dryrun_gpu.json.  Safe to run again: the primer resumes from
+# its checkpoints (data/runs/paper/ch2_primer/checkpoints) and an archive already in OUT is
+# never overwritten; a step that fails is logged and the next one still runs.
+#
+# The GPU machines cannot reach a package registry.  Their image has JAX (CUDA), flax,
+# optax, orbax, pandas and matplotlib; the rest of requirements.lock travels as wheels:
+#
+#   bench/gpu_session.sh --prepare      # here, with network: downloads them into .whl/
+#
+# then run it there with .whl carried (device `run`: carry [".whl"]):
+#
+#   bash bench/gpu_session.sh "$OUT"
+set -u
+cd "$(dirname "$0")/.."
+
+# the image's own packages (../.library/device/KINDS.md, 2026-11-17): not carried
+IMAGE_HAS="absl-py chex flax jax jaxlib ml-dtypes numpy opt-einsum optax orbax-checkpoint
+pandas matplotlib scipy tqdm pyyaml jinja2 markupsafe packaging pillow pygments typing-extensions
+etils msgpack protobuf tensorstore toolz treescope rich humanize nest-asyncio fsspec attrs
+python-dateutil six pyparsing kiwisolver cycler fonttools contourpy tzdata pytz simplejson
+psutil requests urllib3 idna certifi charset-normalizer click zipp wheel setuptools pip
+platformdirs filelock aiofiles"
+
+# what only the book's rendering, JupyterLab or the tests need: not carried (64 MiB a call)
+BOOK_ONLY="jupyter-book pydata-sphinx-theme accessible-pygments alabaster babel docutils
+imagesize snowballstemmer pybtex pybtex-docutils latexcodec django-static-mathjax sqlalchemy
+jupyter-cache jupyter-builder notebook notebook-shim selenium pysocks outcome wsproto
+sortedcontainers ruff nbmake flask flask-cors itsdangerous werkzeug blinker terminado
+send2trash jupyter-lsp jupyter-events argon2-cffi argon2-cffi-bindings async-lru json5
+linkify-it-py uc-micro-py websockets websocket-client uvloop mujoco-studio pyopengl glfw
+tensorboardx"
+
+if [ "${1:-}" = "--prepare" ]; then
+    rm -rf .whl
+    mkdir -p .whl
+    grep -qx "/.whl/" .git/info/exclude 2>/dev/null || echo "/.whl/" >> .git/info/exclude
+    # every pinned package the image lacks, as CPython 3.12 manylinux wheels, no dependencies
+    grep -E '^[A-Za-z0-9_.-]+==' requirements.lock | sed 's/ .*//' | while read -r pin; do
+        name=$(echo "${pin%%==*}" | tr 'A-Z_' 'a-z-')
+        case " $(echo $IMAGE_HAS) " in *" $name "*) continue ;; esac
+        case " $(echo $BOOK_ONLY) " in *" $name "*) continue ;; esac
+        case "$name" in sphinx*|myst-*|jupyterlab*|jupyter-server*|trio*|pytest*) continue ;; esac
+        python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+            --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+            --platform manylinux2014_x86_64 --platform any -d .whl "$pin" \
+            || echo "no wheel for $pin (install it there another way)"
+    done
+    du -sh .whl
+    exit 0
+fi
+
+OUT=${1:-${OUT:-bench/results/gpu_session}}
+mkdir -p "$OUT"
+LOG="$OUT/log.txt"
+export PYTHONUNBUFFERED=1
+if ls .whl/*.whl >/dev/null 2>&1; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+fi
+PY=${PY:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}
+
+step() {  # step NAME SECONDS COMMAND...: run, time and log one step; never stop the session
+    local name=$1 limit=$2
+    shift 2
+    echo "── $(date -u +%H:%M:%S) $name" | tee -a "$LOG"
+    local began=$SECONDS
+    timeout "$limit" "$@" >>"$LOG" 2>&1
+    local rc=$?
+    echo "── $name: exit $rc after $((SECONDS - began)) s" | tee -a "$LOG"
+}
+
+step "environment" 120 "$PY" - "$OUT/environment.json" <<'EOF'
+import json, os, sys
+import jax
+from qdnb.book import provenance
+from qdnb.book.provenance import DETERMINISTIC_FLAG
+info = {
+    "devices": [str(d) for d in jax.devices()],
+    "device": provenance.device_text(),
+    "versions": provenance.versions(),
+    "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    "deterministic_flag_set": DETERMINISTIC_FLAG in os.environ.get("XLA_FLAGS", ""),
+    "deterministic_flag": DETERMINISTIC_FLAG,
+}
+print(json.dumps(info, indent=1))
+json.dump(info, open(sys.argv[1], "w"), indent=1)
+EOF
+
+ARCHIVE="$OUT/paper-ch2_primer.tar.gz"
+if [ -e "$ARCHIVE" ]; then
+    echo "── the primer at paper is already published: $ARCHIVE (left as it is)" | tee -a "$LOG"
+else
+    step "ch2_primer at paper" 420 "$PY" -m qdnb run ch2_primer --scale paper
+    step "publish ch2_primer" 60 "$PY" -m qdnb publish paper ch2_primer --out "$ARCHIVE"
+fi
+step "scale_out --real" 300 "$PY" bench/scale_out.py --real --scale paper \
+    --out "$OUT/scale_out_gpu.json"
+step "dry run of the other chapters" 900 "$PY" -m qdnb dryrun ch3_qdpg ch3_baselines \
+    ch3_evolution ch4_reproducibility ch4_qdt ch5_flow_lenia --scale paper \
+    --out "$OUT/paper_dryrun_gpu.json"
+echo "── done: $OUT" | tee -a "$LOG"

@@ -1,0 +1,279 @@
+"""Dry runs: every long loop of a notebook runs its first step(s) at a scale's real
+shapes, its cost is measured, and the rest is skipped.
+
+``python -m qdnb dryrun`` (``qdnb.book.dryrun``) executes a notebook with
+``QDNB_DRYRUN`` naming a file; from then on, in that kernel:
+
+- ``scan_in_chunks`` compiles its step as a one-step ``lax.scan`` (the chunk's own
+  body), runs it once or twice, and returns the final carry with the step's outputs
+  repeated to the loop's full length, so everything downstream (metrics, tables,
+  figures) runs on arrays of the real run's shapes;
+- a Python loop written ``for i in dryrun.steps(name, range(...))`` runs its first
+  ``keep`` iterations, each timed up to ``step_done``;
+- ``dryrun.count(what, full, kept)`` cuts a count that changes no shape (episodes
+  generated, seeds run one after another) and says so;
+- loops run one after another (``map_concurrently``), so that each is timed alone.
+
+Each loop appends one JSON line to that file: its name, the loop's full length, the
+steps run, compile seconds, seconds per step, and the sizes of its state (the
+carry: what a checkpoint saves), of its outputs at full length and of XLA's
+working memory.  Outside a dry run every function here is the identity.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import resource
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ENV = "QDNB_DRYRUN"
+KEEP_STEPS = 2  # steps a loop runs in a dry run (the first one alone when it is slow)
+SLOW_STEP_S = 20.0  # a first step slower than this is not run again
+
+_lock = threading.Lock()
+_repeat = threading.local()
+
+
+def active() -> Path | None:
+    """The file this process's dry run records to, or ``None`` outside a dry run."""
+    where = os.environ.get(ENV)
+    return Path(where) if where else None
+
+
+def tree_bytes(tree: Any) -> int:
+    """Bytes of every array of ``tree`` (all shards of a sharded array)."""
+    return int(
+        sum(np.dtype(x.dtype).itemsize * int(np.prod(x.shape)) for x in jax.tree.leaves(tree))
+    )
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory so far (Linux reports kilobytes)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def record(kind: str, name: str, **fields: Any) -> None:
+    """Append one record to the dry run's file (nothing outside a dry run)."""
+    where = active()
+    if where is None:
+        return
+    entry = {
+        "kind": kind,
+        "name": name,
+        "repeats": repeat_factor(),
+        "memory_factor": memory_factor(),
+        **fields,
+    }
+    entry.update(peak_rss_bytes=peak_rss_bytes(), devices=jax.device_count())
+    held = getattr(_repeat, "held", None)
+    if held is not None:  # inside ``held_back``: written later, or never
+        held.append(entry)
+        return
+    write([entry])
+
+
+def write(entries: list[dict[str, Any]]) -> None:
+    where = active()
+    if where is None or not entries:
+        return
+    with _lock:
+        where.parent.mkdir(parents=True, exist_ok=True)
+        with where.open("a") as f:
+            f.writelines(json.dumps(e, default=float) + "\n" for e in entries)
+
+
+def repeat_factor() -> float:
+    return getattr(_repeat, "factor", 1.0)
+
+
+def memory_factor() -> float:
+    return getattr(_repeat, "memory", 1.0)
+
+
+@contextlib.contextmanager
+def repeats(factor: float, side_by_side: bool = False) -> Iterator[None]:
+    """Loops recorded inside stand for ``factor`` runs each in the full run, after a
+    ``count`` cut: of work run again one after another (seeds in a Python loop), or,
+    ``side_by_side``, of independent copies the full run holds at once (seeds under
+    ``vmap``), whose memory then counts ``factor`` times too."""
+    before = repeat_factor(), memory_factor()
+    _repeat.factor = before[0] * factor
+    _repeat.memory = before[1] * (factor if side_by_side else 1.0)
+    try:
+        yield
+    finally:
+        _repeat.factor, _repeat.memory = before
+
+
+@contextlib.contextmanager
+def held_back() -> Iterator[list[dict[str, Any]]]:
+    """The records made inside are collected in the list it yields, not written: the
+    caller then ``write``s them or drops them (a probe it measured something with)."""
+    before = getattr(_repeat, "held", None)
+    _repeat.held = []
+    try:
+        yield _repeat.held
+    finally:
+        _repeat.held = before
+
+
+@contextlib.contextmanager
+def uncut() -> Iterator[None]:
+    """``count`` cuts nothing inside."""
+    before = getattr(_repeat, "uncut", False)
+    _repeat.uncut = True
+    try:
+        yield
+    finally:
+        _repeat.uncut = before
+
+
+def cutting() -> bool:
+    """In a dry run, outside ``uncut``: counts may be cut."""
+    return active() is not None and not getattr(_repeat, "uncut", False)
+
+
+def count(what: str, full: int, kept: int = 1) -> int:
+    """``full``; in a dry run ``min(full, kept)``, the cut recorded (not inside
+    ``uncut``).  Only for counts that change no shape a loop compiles (episodes
+    generated, trajectories, seeds run one after another or side by side)."""
+    if not cutting() or full <= kept:
+        return full
+    record("cut", what, full=int(full), kept=int(kept))
+    return int(kept)
+
+
+def _memory(compiled: Any) -> dict[str, int]:
+    """XLA's own account of one compiled program's memory (per device)."""
+    try:
+        stats = compiled.memory_analysis()
+    except Exception:  # a backend without the analysis
+        return {}
+    if stats is None:
+        return {}
+    return {
+        "xla_argument_bytes": int(stats.argument_size_in_bytes),
+        "xla_output_bytes": int(stats.output_size_in_bytes),
+        "xla_temp_bytes": int(stats.temp_size_in_bytes),
+    }
+
+
+def scan(
+    step: Callable[[Any], tuple[Any, Any]], carry: Any, num_steps: int, name: str | None
+) -> tuple[Any, Any]:
+    """``scan_in_chunks``'s dry run: the step as a one-step ``lax.scan``, compiled
+    ahead of time (its compile seconds), run ``KEEP_STEPS`` times (once when slow);
+    returns the last carry and the last step's outputs repeated ``num_steps`` times."""
+    name = name or "unnamed loop"
+    program = jax.jit(lambda c: jax.lax.scan(lambda c, _: step(c), c, None, length=1))
+    seconds, out = [], None
+    began = time.perf_counter()
+    try:
+        compiled = program.lower(carry).compile()
+        compile_s = time.perf_counter() - began
+        placed = compiled.input_shardings[0][0]  # where the program wants its carry
+        for _ in range(min(KEEP_STEPS, num_steps)):
+            carry = jax.device_put(carry, placed)  # a step may hand it back placed otherwise
+            began = time.perf_counter()
+            carry, out = compiled(carry)
+            jax.block_until_ready((carry, out))
+            seconds.append(time.perf_counter() - began)
+            if seconds[0] > SLOW_STEP_S:
+                break
+    except Exception as err:  # reported with the loop's name, then raised as it was
+        record("failed", name, full_steps=int(num_steps), error=f"{type(err).__name__}: {err}")
+        raise
+    fields = {
+        "full_steps": int(num_steps),
+        "steps_run": len(seconds),
+        "compile_s": compile_s,
+        "step_s": seconds,
+        "seconds_per_step": min(seconds),
+        "carry_bytes": tree_bytes(carry),
+        "outputs_bytes": tree_bytes(out) * num_steps,
+        **_memory(compiled),
+    }
+    if isinstance(out, dict) and "env_steps" in out:
+        fields["env_steps_per_step"] = float(jnp.sum(out["env_steps"]))
+    record("scan", name, **fields)
+    outputs = jax.tree.map(lambda x: jnp.repeat(x, num_steps, axis=0), out)
+    return carry, outputs
+
+
+class steps:
+    """``for i in steps(name, range(...), unit="epoch")``: every iteration outside a
+    dry run; in one, the first ``keep``, each timed from its start to ``step_done``
+    (which waits for the arrays it is given).  Recorded at the loop's end with the
+    loop's full length (``len(indices)``, or ``full``)."""
+
+    def __init__(
+        self,
+        name: str,
+        indices: Iterable[int],
+        full: int | None = None,
+        keep: int = KEEP_STEPS,
+        unit: str = "step",
+    ):
+        self.name, self.indices, self.keep, self.unit = name, indices, keep, unit
+        self.full = full if full is not None else len(indices)  # type: ignore[arg-type]
+        self.seconds: list[float] = []
+        self._began = 0.0
+        self.dry = active() is not None
+
+    def __iter__(self) -> Iterator[int]:
+        if not self.dry:
+            yield from self.indices
+            return
+        for n, i in enumerate(self.indices):
+            if n >= self.keep or (self.seconds and self.seconds[0] > SLOW_STEP_S):
+                break
+            self._began = time.perf_counter()
+            yield i
+        first = self.seconds[0] if self.seconds else 0.0
+        later = self.seconds[1:] or self.seconds
+        record(
+            "loop",
+            self.name,
+            unit=self.unit,
+            full_steps=int(self.full),
+            steps_run=len(self.seconds),
+            step_s=self.seconds,
+            # the first step compiles; the later ones are the steady rate
+            compile_s=max(0.0, first - min(later)) if later else 0.0,
+            seconds_per_step=min(later) if later else 0.0,
+        )
+
+    def step_done(self, *arrays: Any) -> None:
+        """The current iteration is over once ``arrays`` are computed (dry run only)."""
+        if self.dry:
+            jax.block_until_ready(arrays)
+            self.seconds.append(time.perf_counter() - self._began)
+
+
+def timed(name: str, full_calls: int, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """``fn(*args, **kwargs)``; in a dry run its wall time is recorded as one call of
+    ``full_calls`` the full run makes (a one-shot program: a batch of rollouts)."""
+    began = time.perf_counter()
+    out = fn(*args, **kwargs)
+    if active() is not None:
+        jax.block_until_ready(out)
+        seconds = time.perf_counter() - began
+        record(
+            "call",
+            name,
+            full_steps=int(full_calls),
+            steps_run=1,
+            step_s=[seconds],
+            compile_s=0.0,
+            seconds_per_step=seconds,
+        )
+    return out

@@ -1,0 +1,259 @@
+"""The paper dry run: loops cut to their first steps at real shapes, the projection
+arithmetic, the refusals, and a whole notebook's dry run at `tiny`."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from qdnb.book import dryrun as report
+from qdnb.core import dryrun
+from qdnb.core.loops import scan_in_chunks
+
+
+@pytest.fixture
+def records(tmp_path, monkeypatch):
+    """A dry run in this process; returns a function reading what it recorded."""
+    path = tmp_path / "loops.jsonl"
+    monkeypatch.setenv(dryrun.ENV, str(path))
+    return lambda: report.read_records(path)
+
+
+def test_outside_a_dry_run_nothing_is_cut_or_recorded(tmp_path, monkeypatch):
+    monkeypatch.delenv(dryrun.ENV, raising=False)
+    assert dryrun.active() is None
+    assert dryrun.count("episodes", 3000, 10) == 3000
+    steps = dryrun.steps("loop", range(7))
+    assert list(steps) == list(range(7))
+    carry, outs = scan_in_chunks(lambda c: (c + 1, c), jnp.int32(0), 7, 3, progress=False)
+    assert int(carry) == 7 and outs.shape == (7,)
+
+
+def test_a_dry_scan_runs_two_steps_and_returns_outputs_of_full_length(records):
+    step = lambda c: (c + 1, {"value": c * 2, "env_steps": jnp.int32(5)})
+    carry, outs = scan_in_chunks(step, jnp.int32(0), 1000, 100, desc="counter", progress=False)
+    assert int(carry) == dryrun.KEEP_STEPS  # two steps ran, not 1000
+    assert outs["value"].shape == (1000,)  # downstream code sees the full run's shapes
+    assert int(outs["value"][-1]) == 2  # the last step run, repeated
+    (rec,) = records()
+    assert rec["kind"] == "scan" and rec["name"] == "counter"
+    assert rec["full_steps"] == 1000 and rec["steps_run"] == 2 and len(rec["step_s"]) == 2
+    assert rec["compile_s"] > 0 and rec["seconds_per_step"] == min(rec["step_s"])
+    assert rec["carry_bytes"] == 4  # one int32
+    assert rec["outputs_bytes"] == 1000 * 8  # two int32 per step, at full length
+    assert rec["env_steps_per_step"] == 5
+    assert rec["peak_rss_bytes"] > 0 and rec["devices"] >= 1
+    assert "xla_temp_bytes" in rec
+
+
+def test_a_failing_loop_is_recorded_with_its_name_and_error(records):
+    def bad(c):
+        return c @ jnp.ones((3, 2)), c  # (4,) @ (3, 2): a shape error
+
+    with pytest.raises(TypeError):
+        scan_in_chunks(bad, jnp.ones(4), 10, 5, desc="broken loop", progress=False)
+    (rec,) = records()
+    assert rec["kind"] == "failed" and rec["name"] == "broken loop"
+    assert "TypeError" in rec["error"]
+    summary = report.summarise("nb", records(), [])
+    assert summary["failed_loops"] == [{"name": "broken loop", "error": rec["error"]}]
+
+
+def test_a_python_loop_runs_its_first_iterations_and_counts_are_cut(records):
+    steps = dryrun.steps("training", range(50), full=5000)
+    seen = []
+    for i in steps:
+        seen.append(i)
+        steps.step_done(jnp.ones(3) * i)
+    assert seen == [0, 1]
+    with dryrun.repeats(3):
+        assert dryrun.count("seeds", 3, 1) == 1
+        dryrun.timed("rollouts", 20, lambda: jnp.zeros(2))
+    assert dryrun.count("small enough", 2, 5) == 2  # nothing to cut: not recorded
+    loop, cut, call = records()
+    assert loop["name"] == "training" and loop["full_steps"] == 5000 and loop["steps_run"] == 2
+    assert loop["repeats"] == 1
+    assert cut == {**cut, "kind": "cut", "name": "seeds", "full": 3, "kept": 1, "repeats": 3}
+    assert call["kind"] == "call" and call["full_steps"] == 20 and call["repeats"] == 3
+    assert call["memory_factor"] == 1  # one after another: the memory is not held three times
+
+
+def small_map_elites():
+    from qdnb.envs.pointmaze import PointMaze
+    from qdnb.nets.mlp import MLP
+    from qdnb.qd.algorithms import PolicyMapElites
+    from qdnb.qd.cvt import grid_centroids
+
+    env = PointMaze(episode_length=10)
+    return PolicyMapElites(
+        env=env,
+        network=MLP((4, env.action_size)),
+        batch_size=8,
+        iso_sigma=0.05,
+        line_sigma=0.1,
+        centroids=grid_centroids((4, 4), env.descriptor_low, env.descriptor_high),
+    )
+
+
+def test_cheap_seeds_side_by_side_are_all_run(records):
+    """A dry run of ``run_seeds`` whose seeds' steps are cheap runs them all at once, as
+    the full run does (one seed is tried first and not recorded)."""
+    from qdnb.qd.algorithms import run_seeds
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    states, _, history = run_seeds(small_map_elites(), keys, 30, 10, progress=False, desc="ME")
+    assert history["max_fitness"].shape[:2] == (3, 31)
+    (loop,) = records()
+    assert loop["name"] == "ME" and loop["repeats"] == 1 and loop["memory_factor"] == 1
+    assert loop["full_steps"] == 31 and loop["steps_run"] == 2
+
+
+def test_slow_seeds_side_by_side_run_one_and_count_for_all(records, monkeypatch):
+    """When all the seeds' steps would be slow, one seed stands for all: its time and
+    memory count once per seed and every seed's slot gets its results (the shapes
+    downstream code expects)."""
+    from qdnb.qd.algorithms import run_seeds
+
+    monkeypatch.setattr(dryrun, "SLOW_STEP_S", 0.0)  # every step counts as slow
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    states, _, history = run_seeds(small_map_elites(), keys, 30, 10, progress=False, desc="ME")
+    assert history["max_fitness"].shape[:2] == (3, 31)
+    assert jax.tree.leaves(states)[0].shape[0] == 3
+    np.testing.assert_array_equal(history["max_fitness"][0], history["max_fitness"][2])
+    cut, loop = records()
+    assert cut["name"] == "ME: seeds side by side" and (cut["full"], cut["kept"]) == (3, 1)
+    assert loop["name"] == "ME" and loop["repeats"] == 3 and loop["memory_factor"] == 3
+    assert loop["full_steps"] == 31 and loop["steps_run"] == 1  # a slow first step runs alone
+    one = report.project({**loop, "memory_factor": 1})
+    assert report.project(loop)["device_bytes"] == pytest.approx(3 * one["device_bytes"])
+
+
+def test_projection_arithmetic_on_hand_made_rates():
+    loop = {
+        "kind": "scan",
+        "name": "ant_omni ME-LS",
+        "repeats": 2.0,
+        "full_steps": 1000,
+        "compile_s": 36.0,
+        "seconds_per_step": 3.6,
+        "env_steps_per_step": 250_000.0,
+        "carry_bytes": 10**9,
+        "outputs_bytes": 2 * 10**9,
+        "xla_temp_bytes": 3 * 10**9,
+        "devices": 2,
+    }
+    rate = {"per": "env_step", "rate": 5e6, "source": "x.json", "what": "the loop"}
+    p = report.project(loop, rate)
+    assert p["cpu_hours"] == pytest.approx(2 * (36 + 3600) / 3600)
+    assert p["gpu_hours"] == pytest.approx(2 * 1000 * 250_000 / 5e6 / 3600)
+    assert p["checkpoint_bytes"] == 3 * 10**9
+    assert p["device_bytes"] == 10**9 + 2 * 10**9 + 2 * 3 * 10**9
+    assert report.project(loop)["gpu_hours"] is None  # no rate: no guess
+    per_step = {"per": "step", "rate": 4.0, "source": "q.json", "what": "a step"}
+    assert report.project(loop, per_step)["gpu_hours"] == pytest.approx(2 * 1000 / 4 / 3600)
+
+
+def test_a_loop_meets_the_rate_measured_for_it():
+    rates = [
+        {"notebook": "ch4_reproducibility", "match": "ant_omni ME-LS", "per": "env_step",
+         "rate": 5e6, "source": "a", "what": "ME-LS"},
+        {"notebook": "ch4_reproducibility", "match": "ant_omni ME", "per": "env_step",
+         "rate": 1e6, "source": "a", "what": "ME"},
+        {"notebook": "ch2_primer", "match": "", "per": "env_step", "rate": 1e8,
+         "batch_env_steps": 200_000, "source": "r", "what": "small"},
+        {"notebook": "ch2_primer", "match": "", "per": "env_step", "rate": 6e8,
+         "batch_env_steps": 1_600_000, "source": "r", "what": "large"},
+    ]  # fmt: skip
+    loop = lambda name, steps=None: {"name": name, "env_steps_per_step": steps}
+    assert (
+        report.matching_rate("ch4_reproducibility", loop("ant_omni ME-LS", 1), rates)["rate"] == 5e6
+    )
+    assert report.matching_rate("ch4_reproducibility", loop("ant_omni ME", 1), rates)["rate"] == 1e6
+    assert report.matching_rate("ch4_reproducibility", loop("halfcheetah_uni ME", 1), rates) is None
+    assert report.matching_rate("ch2_primer", loop("ME", 2_000_000), rates)["what"] == "large"
+    assert report.matching_rate("ch2_primer", loop("ME", 150_000), rates)["what"] == "small"
+    assert report.matching_rate("ch2_primer", loop("ME"), rates) is None  # steps not counted
+    assert report.gpu_rates()  # the committed H100 measurements are read
+
+
+def test_summarise_totals_and_the_page():
+    loops = [
+        {"kind": "scan", "name": "a", "repeats": 1, "full_steps": 10, "steps_run": 2,
+         "compile_s": 0.0, "seconds_per_step": 360.0, "carry_bytes": 5, "outputs_bytes": 5,
+         "xla_temp_bytes": 90e9, "devices": 1, "peak_rss_bytes": 7},
+        {"kind": "loop", "name": "b", "repeats": 1, "full_steps": 10, "steps_run": 2,
+         "compile_s": 0.0, "seconds_per_step": 36.0, "peak_rss_bytes": 9},
+        {"kind": "cut", "name": "episodes", "full": 3000, "kept": 10},
+        {"kind": "data", "name": "dataset", "bytes": 1, "full_bytes": 300},
+    ]  # fmt: skip
+    s = report.summarise("ch2_primer", loops, [])
+    t = s["totals"]
+    assert t["loops"] == 2 and t["cpu_hours"] == pytest.approx(1.1)
+    assert t["peak_rss_bytes"] == 9 and not t["fits_gpu"]  # 90 GB of working memory
+    assert t["checkpoint_bytes"] == report.CHECKPOINTS_KEPT * 10  # scans only
+    assert t["dataset_bytes"] == 300 and s["cuts"][0]["kept"] == 10
+    fake = {
+        "scale": "paper",
+        "wall_s": 60.0,
+        "notebooks": {
+            "ch2_primer": {
+                **s,
+                "status": "ok",
+                "error": None,
+                "command": "python -m qdnb run ch2_primer --scale paper",
+                "ran_on": {"cpu_count": 2, "device": "2 CPU devices", "git": "abc", "date": "d"},
+            }
+        },
+    }
+    page = report.page_markdown(fake)
+    assert "python -m qdnb run ch2_primer --scale paper" in page and "over 80 GB" in page
+    assert "episodes: 10 of 3,000" in page
+    assert "No dry run" in report.page_markdown(None)
+
+
+def test_unknown_notebooks_and_scales_are_refused_with_the_valid_names(capsys):
+    from qdnb.__main__ import main
+
+    assert main(["dryrun", "ch9_nothing"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown notebook" in err and "ch2_primer" in err and "ch5_flow_lenia" in err
+    assert main(["dryrun", "ch2_primer", "--scale", "huge"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown scale 'huge'" in err and "tiny, small, paper" in err
+
+
+def test_a_failing_notebook_is_reported_and_the_others_still_run(tmp_path, monkeypatch):
+    from qdnb.book import runner
+
+    def execute(source, output, parameters, label, progress, checkpoints):
+        assert checkpoints == "off" and parameters["scale"] == "tiny"
+        if "ch2_primer" in label:
+            raise runner.NotebookFailed("notebook 'ch2_primer' failed in cell 7: ValueError: x")
+
+    monkeypatch.setattr(runner, "execute", execute)
+    out = tmp_path / "report.json"
+    got = report.dry_run(["ch2_primer", "ch3_qdpg"], "tiny", progress=False, out=out, work=tmp_path)
+    assert got["notebooks"]["ch2_primer"]["status"] == "failed"
+    assert "cell 7" in got["notebooks"]["ch2_primer"]["error"]
+    assert got["notebooks"]["ch3_qdpg"]["status"] == "ok"
+    assert json.loads(out.read_text())["scale"] == "tiny"
+
+
+@pytest.mark.notebook
+def test_the_primer_dry_run_at_tiny_times_every_loop(tmp_path):
+    """The real thing at `tiny`: the notebook runs with each of its three loops cut to
+    two steps, every field reported; the book's runs are not touched."""
+    out = tmp_path / "tiny_dryrun.json"
+    got = report.dry_run(["ch2_primer"], "tiny", progress=False, out=out, work=tmp_path)
+    nb = got["notebooks"]["ch2_primer"]
+    assert nb["status"] == "ok", nb["error"]
+    assert [loop["name"] for loop in nb["loops"]] == ["GA", "NS", "ME"]
+    for loop in nb["loops"]:
+        assert loop["steps_run"] == 2 and loop["full_steps"] in (40, 41)
+        assert loop["compile_s"] > 0 and loop["seconds_per_step"] > 0
+        assert loop["cpu_hours"] > 0 and loop["device_bytes"] > loop["carry_bytes"] > 0
+        assert loop["gpu_hours"] is not None  # Point-Maze rollouts were measured on an H100
+    assert (tmp_path / "tiny" / "runs" / "tiny" / "ch2_primer" / "summary.json").exists()
+    assert np.isfinite(nb["totals"]["cpu_hours"])
