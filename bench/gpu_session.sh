@@ -8,7 +8,9 @@
 #
 # Everything it writes goes under one folder, OUT (the first argument, else $OUT, else
 # bench/results/gpu_session/): log.txt, environment.json, the published archive,
-# scale_out_gpu.json, paper_dryrun_gpu.json.  Safe to run again: the primer resumes from
+# scale_out_gpu.json, paper_dryrun_gpu.json (copied to bench/results/, the CPU dry run's
+# report gets its GPU hours: python -m qdnb dryrun all --report-only).  SESSION_S (600)
+# bounds the whole session: each step's timeout is cut to what is left.  Safe to run again: the primer resumes from
 # its checkpoints (data/runs/paper/ch2_primer/checkpoints) and an archive already in OUT is
 # never overwritten; a step that fails is logged and the next one still runs.
 #
@@ -69,10 +71,18 @@ if ls .whl/*.whl >/dev/null 2>&1; then
 fi
 PY=${PY:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}
 
+SESSION_S=${SESSION_S:-600}  # the whole session's seconds: no step runs past them
+
 step() {  # step NAME SECONDS COMMAND...: run, time and log one step; never stop the session
     local name=$1 limit=$2
     shift 2
-    echo "── $(date -u +%H:%M:%S) $name" | tee -a "$LOG"
+    local left=$((SESSION_S - SECONDS))
+    [ "$left" -lt "$limit" ] && limit=$left
+    if [ "$limit" -le 10 ]; then
+        echo "── $name: skipped, the session's $SESSION_S s are spent" | tee -a "$LOG"
+        return
+    fi
+    echo "── $(date -u +%H:%M:%S) $name (at most $limit s)" | tee -a "$LOG"
     local began=$SECONDS
     timeout "$limit" "$@" >>"$LOG" 2>&1
     local rc=$?
@@ -100,12 +110,12 @@ ARCHIVE="$OUT/paper-ch2_primer.tar.gz"
 if [ -e "$ARCHIVE" ]; then
     echo "── the primer at paper is already published: $ARCHIVE (left as it is)" | tee -a "$LOG"
 else
-    step "ch2_primer at paper" 420 "$PY" -m qdnb run ch2_primer --scale paper
+    step "ch2_primer at paper" 300 "$PY" -m qdnb run ch2_primer --scale paper
     step "publish ch2_primer" 60 "$PY" -m qdnb publish paper ch2_primer --out "$ARCHIVE"
 fi
-step "scale_out --real" 300 "$PY" bench/scale_out.py --real --scale paper \
-    --out "$OUT/scale_out_gpu.json"
-step "dry run of the other chapters" 900 "$PY" -m qdnb dryrun ch3_qdpg ch3_baselines \
+step "scale_out --real" 150 "$PY" bench/scale_out.py --real --out "$OUT/scale_out_gpu.json"
+# the report is written after each notebook: one the session's end cuts off keeps the others
+step "dry run of the other chapters" 600 "$PY" -m qdnb dryrun ch3_qdpg ch3_baselines \
     ch3_evolution ch4_reproducibility ch4_qdt ch5_flow_lenia --scale paper \
     --out "$OUT/paper_dryrun_gpu.json"
 echo "── done: $OUT" | tee -a "$LOG"

@@ -97,6 +97,11 @@ def main(argv: list[str] | None = None) -> int:
         "--out", default=None, help="the report (default: bench/results/<scale>_dryrun.json)"
     )
     dry.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rebuild the report from the last dry run's records (new GPU rates), running nothing",
+    )
+    dry.add_argument(
         "--devices",
         metavar="N",
         default=None,
@@ -146,11 +151,14 @@ def main(argv: list[str] | None = None) -> int:
             dryrun.resolve(args.notebooks)
             set_devices(args.devices)
             out = Path(args.out) if args.out else None
-            report = dryrun.dry_run(args.notebooks, args.scale, args.seed, out=out)
+            if args.report_only:
+                report = dryrun.resummarise(args.scale, out)
+            else:
+                report = dryrun.dry_run(args.notebooks, args.scale, args.seed, out=out)
             print(dryrun.text_table(report))
             print(f"report: {paths.shown(out or dryrun.report_path(args.scale))}")
             ran = dryrun.resolve(args.notebooks)
-            failed = [n for n in ran if report["notebooks"][n]["status"] != "ok"]
+            failed = [n for n in ran if report["notebooks"].get(n, {}).get("status") == "failed"]
             return 1 if failed else 0
         elif args.command == "check-pages":
             from qdnb.book import pagecheck

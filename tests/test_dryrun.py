@@ -80,6 +80,36 @@ def test_a_python_loop_runs_its_first_iterations_and_counts_are_cut(records):
     assert call["memory_factor"] == 1  # one after another: the memory is not held three times
 
 
+def test_calls_of_one_program_are_timed_once(records):
+    calls = []
+    fn = lambda x: calls.append(x) or jnp.ones(2) * x
+    first = dryrun.timed("rollouts a", 20, fn, 1.0, same_as="test program")
+    again = dryrun.timed("rollouts b", 20, fn, 2.0, same_as="test program")
+    assert calls == [1.0] and again is first  # the second call ran nothing
+    a, b = records()
+    assert a["steps_run"] == 1 and b["steps_run"] == 0
+    assert b["seconds_per_step"] == a["seconds_per_step"] and b["full_steps"] == 20
+
+
+def test_a_player_times_its_simulation_once(records):
+    from qdnb.envs.player import Player
+    from qdnb.envs.pointmaze import PointMaze
+    from qdnb.nets.mlp import MLP, init_policies
+
+    env = PointMaze(episode_length=5)
+    network = MLP((4, env.action_size))
+    player = Player(env, network, chunk=4, name="test episodes")
+    params = init_policies(network, jax.random.PRNGKey(0), 10, env.observation_size)
+    keys = jax.random.split(jax.random.PRNGKey(1), 10)
+    first = player.play(params, keys)
+    second = player.play(params, keys)
+    assert first.fitness.shape == second.fitness.shape == (10,)  # the full run's shapes
+    a, b = records()
+    assert a["name"] == b["name"] == "test episodes (4 per chunk)"
+    assert a["full_steps"] == 3 and a["steps_run"] == 2  # 10 episodes: three chunks of 4
+    assert b["steps_run"] == 0 and b["seconds_per_step"] == a["seconds_per_step"]
+
+
 def small_map_elites():
     from qdnb.envs.pointmaze import PointMaze
     from qdnb.nets.mlp import MLP
@@ -116,7 +146,8 @@ def test_slow_seeds_side_by_side_run_one_and_count_for_all(records, monkeypatch)
     downstream code expects)."""
     from qdnb.qd.algorithms import run_seeds
 
-    monkeypatch.setattr(dryrun, "SLOW_STEP_S", 0.0)  # every step counts as slow
+    monkeypatch.setattr(dryrun, "ALL_SEEDS_S", 0.0)  # every step of all seeds counts as slow
+    monkeypatch.setattr(dryrun, "SLOW_STEP_S", 0.0)
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     states, _, history = run_seeds(small_map_elites(), keys, 30, 10, progress=False, desc="ME")
     assert history["max_fitness"].shape[:2] == (3, 31)
@@ -153,6 +184,11 @@ def test_projection_arithmetic_on_hand_made_rates():
     assert report.project(loop)["gpu_hours"] is None  # no rate: no guess
     per_step = {"per": "step", "rate": 4.0, "source": "q.json", "what": "a step"}
     assert report.project(loop, per_step)["gpu_hours"] == pytest.approx(2 * 1000 / 4 / 3600)
+    # the same loop's dry run on a GPU: a step there is every seed at once, 0.5 s
+    side = {**loop, "memory_factor": 2.0}  # the two repeats are two seeds side by side
+    on_gpu = {"per": "gpu_step", "rate": 2.0, "source": "g.json", "what": "the loop"}
+    assert report.project(side, on_gpu)["gpu_hours"] == pytest.approx(1000 * 0.5 / 3600)
+    assert report.project(loop, on_gpu)["gpu_hours"] == pytest.approx(2 * 1000 * 0.5 / 3600)
 
 
 def test_a_loop_meets_the_rate_measured_for_it():
@@ -176,6 +212,19 @@ def test_a_loop_meets_the_rate_measured_for_it():
     assert report.matching_rate("ch2_primer", loop("ME", 150_000), rates)["what"] == "small"
     assert report.matching_rate("ch2_primer", loop("ME"), rates) is None  # steps not counted
     assert report.gpu_rates()  # the committed H100 measurements are read
+    exact = {"notebook": "ch2_primer", "match": "ME", "exact": True, "per": "gpu_step",
+             "rate": 9.0, "source": "g", "what": "the loop on a GPU"}  # fmt: skip
+    assert report.matching_rate("ch2_primer", loop("ME", 2_000_000), rates + [exact]) is exact
+    assert report.matching_rate("ch2_primer", loop("MEX", 2_000_000), [exact]) is None
+
+
+def test_a_gpu_dry_run_gives_its_loops_rates(tmp_path):
+    gpu_loop = {"name": "ant_omni ME", "seconds_per_step": 0.25, "memory_factor": 1}
+    gpu_run = {"notebooks": {"ch4_reproducibility": {
+        "loops": [gpu_loop], "ran_on": {"device": "1 GPU (NVIDIA H100)"}}}}  # fmt: skip
+    (tmp_path / "paper_dryrun_gpu.json").write_text(json.dumps(gpu_run))
+    (rate,) = report.gpu_rates(tmp_path)
+    assert rate["rate"] == 4.0 and rate["per"] == "gpu_step" and "H100" in rate["what"]
 
 
 def test_summarise_totals_and_the_page():
@@ -207,6 +256,9 @@ def test_summarise_totals_and_the_page():
             }
         },
     }
+    again = {**loops[1], "full_steps": 30}  # a second call of the same loop: one row
+    rows = report.loop_rows(report.summarise("ch2_primer", loops + [again], []))
+    assert [r["loop"] for r in rows] == ["a", "b (×2)"] and rows[1]["length"] == "40 steps"
     page = report.page_markdown(fake)
     assert "python -m qdnb run ch2_primer --scale paper" in page and "over 80 GB" in page
     assert "episodes: 10 of 3,000" in page
@@ -257,3 +309,20 @@ def test_the_primer_dry_run_at_tiny_times_every_loop(tmp_path):
         assert loop["gpu_hours"] is not None  # Point-Maze rollouts were measured on an H100
     assert (tmp_path / "tiny" / "runs" / "tiny" / "ch2_primer" / "summary.json").exists()
     assert np.isfinite(nb["totals"]["cpu_hours"])
+
+
+def test_the_es_ant_generations_are_cut_only_in_a_dry_run(tmp_path, monkeypatch):
+    """The one population a dry run cuts: Ant-Maze ES perturbations (one paper generation
+    is about 20 minutes on two cores), the generations kept, counted 20 times."""
+    from qdnb.chapters import ch3_evolution as es
+
+    cfg = es.SCALES["paper"]
+    generations = lambda t: t.num_steps // (t.num_actors * t.episode_length)
+    monkeypatch.delenv(dryrun.ENV, raising=False)
+    tasks, share = es.dry_run_tasks(cfg, "antmaze")
+    assert tasks.antmaze.num_actors == 10_000 and share == 1
+    monkeypatch.setenv(dryrun.ENV, str(tmp_path / "loops.jsonl"))
+    cut, share = es.dry_run_tasks(cfg, "antmaze")
+    assert cut.antmaze.num_actors == es.DRY_RUN_ANT_PERTURBATIONS and share == 20
+    assert generations(cut.antmaze) == generations(tasks.antmaze) == 1000
+    assert es.dry_run_tasks(cfg, "pointmaze")[0].pointmaze.num_actors == 10_000

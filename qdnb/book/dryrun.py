@@ -88,6 +88,23 @@ def gpu_rates(bench_dir: Path | None = None) -> list[dict[str, Any]]:
                         "what": f"the whole {method} loop on Ant-Omni",
                     }
                 )
+    for path in sorted(bench_dir.glob("*_dryrun_gpu*.json")):  # bench/gpu_session.sh's
+        gpu_run = json.loads(path.read_text())
+        for notebook, nb in gpu_run.get("notebooks", {}).items():
+            for loop in nb.get("loops", []):
+                if loop["seconds_per_step"] > 0:
+                    rates.append(
+                        {
+                            "notebook": notebook,
+                            "match": loop["name"],
+                            "exact": True,
+                            "per": "gpu_step",
+                            # the seconds of one step of every seed the full run holds at once
+                            "rate": 1.0 / (loop["seconds_per_step"] * loop.get("memory_factor", 1)),
+                            "source": path.name,
+                            "what": f"the same loop's dry run on {nb['ran_on']['device']}",
+                        }
+                    )
     qdt = load("qdt_h100_paper.json")
     if qdt:
         rates.append(
@@ -122,11 +139,14 @@ def matching_rate(
         r
         for r in rates
         if r["notebook"] == notebook
-        and r["match"] in loop["name"]
-        and (r["per"] == "step" or loop.get("env_steps_per_step"))
+        and (r["match"] == loop["name"] if r.get("exact") else r["match"] in loop["name"])
+        and (r["per"] != "env_step" or loop.get("env_steps_per_step"))
     ]
     if not found:
         return None
+    exact = [r for r in found if r.get("exact")]  # the loop itself, measured on a GPU, first
+    if exact:
+        return exact[0]
     sized = [r for r in found if "batch_env_steps" in r]
     if sized:
         target = loop["env_steps_per_step"]
@@ -149,8 +169,13 @@ def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[st
     cpu_s = repeats * (loop.get("compile_s", 0.0) + steps * loop["seconds_per_step"])
     gpu_h = None
     if rate is not None:
-        units = steps * (loop["env_steps_per_step"] if rate["per"] == "env_step" else 1)
-        gpu_h = repeats * units / rate["rate"] / 3600
+        if rate["per"] == "gpu_step":  # a step of all the seeds at once: repeat the rest only
+            units = repeats / loop.get("memory_factor", 1.0) * steps
+        else:
+            units = (
+                repeats * steps * (loop["env_steps_per_step"] if rate["per"] == "env_step" else 1)
+            )
+        gpu_h = units / rate["rate"] / 3600
     scale = loop.get("memory_factor", 1.0)  # seeds side by side, one of them run
     carry, outputs = scale * loop.get("carry_bytes", 0), scale * loop.get("outputs_bytes", 0)
     device = carry + outputs + scale * loop.get("xla_temp_bytes", 0) * loop.get("devices", 1)
@@ -229,8 +254,15 @@ def dry_run_notebook(
             progress,
             checkpoints="off",
         )
-    except runner.NotebookFailed as err:
-        error = str(err)
+    except Exception as err:  # a failed cell, or a kernel that died (out of memory, say)
+        error = (
+            str(err)
+            if isinstance(err, runner.NotebookFailed)
+            else (
+                f"notebook {name!r}: {type(err).__name__}: {err} (the kernel's peak memory: "
+                "the last loop's peak_rss_bytes in its records)"
+            )
+        )
     finally:
         for k, v in before.items():
             if v is None:
@@ -259,9 +291,7 @@ def dry_run(
     out = out or report_path(scale)
     rates = gpu_rates()
     report = json.loads(out.read_text()) if out.exists() else {}
-    if report.get("scale") != scale:
-        report = {}
-    notebooks = report.get("notebooks", {})
+    notebooks = report.get("notebooks", {}) if report.get("scale") == scale else {}
     for name in names:
         ran = dry_run_notebook(name, scale, seed, progress, work)
         notebooks[name] = {
@@ -278,6 +308,7 @@ def dry_run(
             },
             **summarise(name, ran["records"], rates),
         }
+        report = write_report(out, scale, seed, notebooks)  # after each: a cut-off run keeps it
         if progress:
             t = notebooks[name]["totals"]
             print(
@@ -285,6 +316,10 @@ def dry_run(
                 f"{t['loops']} loops, {t['cpu_hours']:.1f} h on this machine",
                 flush=True,
             )
+    return report
+
+
+def write_report(out: Path, scale: str, seed: int, notebooks: dict[str, Any]) -> dict[str, Any]:
     report = {
         "benchmark": f"dry run of the notebooks at {scale}",
         "scale": scale,
@@ -297,6 +332,23 @@ def dry_run(
     report["wall_s"] = sum(nb["wall_s"] for nb in report["notebooks"].values())
     atomic_write_json(out, report)
     return report
+
+
+def resummarise(scale: str = "paper", out: Path | None = None, work: Path | None = None) -> dict:
+    """The report again from the dry run's own records (``data/dryrun``), with the GPU
+    rates known now (after a GPU session, say), without running anything."""
+    out = out or report_path(scale)
+    if not out.exists():
+        raise ValueError(f"no dry run report at {out}: run `python -m qdnb dryrun` first")
+    report = json.loads(out.read_text())
+    rates, where = gpu_rates(), (work or paths.DATA / "dryrun") / report["scale"]
+    notebooks = {}
+    for name, nb in report["notebooks"].items():
+        records = read_records(where / name / "loops.jsonl")
+        if not records:
+            raise ValueError(f"no records of {name}'s dry run under {where}")
+        notebooks[name] = {**nb, **summarise(name, records, rates)}
+    return write_report(out, report["scale"], report["seed"], notebooks)
 
 
 # --- reading the report ------------------------------------------------------------------
@@ -361,19 +413,28 @@ def markdown_table(rows: list[dict[str, str]]) -> str:
 
 
 def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
-    rows = []
+    """One row per loop name: the calls of one loop (the episodes played for each test,
+    the trainings of each dataset) summed, in the order they first ran."""
+    groups: dict[str, list[dict[str, Any]]] = {}
     for loop in nb["loops"]:
+        groups.setdefault(loop["name"], []).append(loop)
+    rows = []
+    for name, loops in groups.items():
+        first, gpu = loops[0], [loop["gpu_hours"] for loop in loops]
+        runs = sum(loop["repeats"] for loop in loops)
+        unit = first.get("unit", "step")
         rows.append(
             {
-                "loop": loop["name"] + (f" (×{loop['repeats']:g})" if loop["repeats"] != 1 else ""),
-                "length": f"{loop['full_steps']:,} {loop.get('unit', 'step')}s",
-                "run": str(loop["steps_run"]),
-                "compile": f"{loop['compile_s']:.1f} s",
-                "per step": f"{loop['seconds_per_step']:.3g} s",
-                "this CPU": hours(loop["cpu_hours"]),
-                "one H100": hours(loop["gpu_hours"]),
-                "state": gigabytes(loop.get("carry_bytes", 0)),
-                "device": gigabytes(loop["device_bytes"]),
+                "loop": name + (f" (×{runs:g})" if runs != 1 else ""),
+                "length": f"{sum(loop['full_steps'] for loop in loops):,} {unit}s",
+                "compile": f"{first['compile_s']:.1f} s",
+                "per step": f"{first['seconds_per_step']:.3g} s",
+                "this CPU": hours(sum(loop["cpu_hours"] for loop in loops)),
+                "one H100": hours(None if None in gpu else sum(gpu)),
+                "state": gigabytes(
+                    max(loop.get("carry_bytes", 0) * loop.get("memory_factor", 1) for loop in loops)
+                ),
+                "device": gigabytes(max(loop["device_bytes"] for loop in loops)),
             }
         )
     return rows

@@ -35,6 +35,7 @@ from qdnb.chapters.ch3_qdpg import (
     run_environment,
 )
 from qdnb.core import claims as claim_records
+from qdnb.core import dryrun
 
 EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
 # this page's methods: their builders in the chapter's method registry
@@ -133,18 +134,45 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
     """QD-PG's results (read or recomputed), then every ES method on each environment
     with the QD-PG page's key for that environment."""
     qdpg, status = load_or_recompute_qdpg(cfg.tasks, scale, seed, progress, ENVIRONMENTS)
-    evolution = {
-        env_name: run_environment(
-            cfg.es_tasks(env_name),
-            env_name,
-            jax.random.fold_in(jax.random.PRNGKey(seed), i),  # i: the QD-PG page's order
-            progress,
-            methods=cfg.methods(env_name),
-            stop_at_goal=True,
-        )
-        for i, env_name in enumerate(("pointmaze", "antmaze"))
-    }
+    evolution = {}
+    for i, env_name in enumerate(("pointmaze", "antmaze")):
+        tasks, share = dry_run_tasks(cfg, env_name)
+        with dryrun.repeats(share, side_by_side=True):
+            evolution[env_name] = run_environment(
+                tasks,
+                env_name,
+                jax.random.fold_in(jax.random.PRNGKey(seed), i),  # i: the QD-PG page's order
+                progress,
+                methods=cfg.methods(env_name),
+                stop_at_goal=True,
+            )
     return Result(qdpg, status, evolution)
+
+
+DRY_RUN_ANT_PERTURBATIONS = 500  # of the 10,000 a paper generation evaluates on Ant-Maze
+
+
+def dry_run_tasks(cfg: EvolutionConfig, env_name: str) -> tuple[QDPGConfig, float]:
+    """``cfg.es_tasks(env_name)``, and 1.  In a dry run (``qdnb.core.dryrun``) at paper
+    scale one Ant-Maze generation (10,000 policies of 256x256 units, 3,000 steps each)
+    takes about 20 minutes on two CPU cores, three methods an hour: there its
+    perturbations, independent episodes side by side, are cut to
+    ``DRY_RUN_ANT_PERTURBATIONS`` (the generations kept as many), and each loop's time
+    and memory count ``10,000 / 500`` times (the factor returned)."""
+    tasks = cfg.es_tasks(env_name)
+    if env_name == "pointmaze":
+        return tasks, 1.0
+    full = cfg.ant_perturbations
+    kept = dryrun.count(
+        "Ant-Maze ES perturbations per generation (side by side)",
+        full,
+        DRY_RUN_ANT_PERTURBATIONS,
+    )
+    if kept == full:
+        return tasks, 1.0
+    t = tasks.antmaze
+    ant = dataclasses.replace(t, num_actors=kept, num_steps=t.num_steps * kept // full)
+    return dataclasses.replace(tasks, antmaze=ant), full / kept
 
 
 def mean_steps(steps: np.ndarray) -> float:

@@ -424,6 +424,7 @@ def run_environment(
             step=step,
             progress=progress,
             desc=desc,
+            program=f"{env_name} QDT rollouts",
         )
         best = next(e for e in res.evaluations if e["epoch"] == res.best_epoch)
         return {

@@ -255,9 +255,11 @@ class MethodResult:
     the final elites and ``spread_at_insertion`` their spread when inserted (NaN for
     the single-episode methods); ``accuracy`` the accuracy experiment (Section
     4.5.2); ``reassessed`` the elites re-inserted after replaying them, with their
-    ``reassessed_spread`` (Table 4.5); ``metrics`` and ``metrics_reassessed`` the QD
-    metrics before and after; ``representatives`` the three policies of Figures
-    4.3-4.5 (seed 0), played ``representative_episodes`` times."""
+    ``reassessed_spread`` (Table 4.5), without genotypes (the elites' own, re-filed: at
+    paper scale a second copy of five seeds' 1,024 policies of 256x256 units is 1.5 GB
+    per method, and the paper dry run ran out of host memory holding them); ``metrics``
+    and ``metrics_reassessed`` the QD metrics before and after; ``representatives`` the
+    three policies of Figures 4.3-4.5 (seed 0), played ``representative_episodes`` times."""
 
     history: dict[str, np.ndarray]
     repertoire: Repertoire
@@ -364,7 +366,7 @@ def run_environment(
                 else np.full(np.shape(elites.fitnesses), np.nan)
             ),
             accuracy=jax.device_get(acc),
-            reassessed=jax.device_get(reassessed),
+            reassessed=jax.device_get(reassessed.replace(genotypes=None)),
             reassessed_spread=np.where(
                 np.asarray(elites.filled), np.asarray(scores.spread), np.nan
             ),
@@ -380,6 +382,7 @@ def run_environment(
             run_seconds=run_seconds,
             seconds=time.time() - start,
         )
+        del states, history, elites, reassessed  # before the next method's run: not beside it
     return EnvironmentResult(
         env_name, env, np.asarray(centroids), np.asarray(goals), offset, results
     )

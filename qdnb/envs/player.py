@@ -27,6 +27,7 @@ class Player:
         self, env: Env, network: MLP, chunk: int, record: bool = False, name: str = "episodes"
     ):
         self.chunk, self.name = chunk, name
+        self._timed: tuple[float, Any] | None = None  # a dry run's rate and chunk output
         kept = ("obs", "action", "valid") if record else "next_state_descriptor"
 
         def play(genotypes, keys):
@@ -50,15 +51,24 @@ class Player:
         padded = jax.tree.map(
             lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), (genotypes, keys)
         )
-        chunks = dryrun.steps(
-            f"{self.name} ({self.chunk} per chunk)", range(0, n + pad, self.chunk), unit="chunk"
-        )
-        outs = []
-        for i in chunks:
-            outs.append(self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded)))
-            chunks.step_done(outs[-1])
+        name, count = f"{self.name} ({self.chunk} per chunk)", (n + pad) // self.chunk
+        if self._timed is not None and dryrun.active() is not None:
+            # a dry run timed this compiled simulation on an earlier call: this call's chunks
+            # count at that rate and repeat that output, none is played
+            rate, out = self._timed
+            dryrun.record("loop", name, unit="chunk", full_steps=count, steps_run=0,
+                          step_s=[], compile_s=0.0, seconds_per_step=rate)  # fmt: skip
+            outs = [out]
+        else:
+            chunks = dryrun.steps(name, range(0, n + pad, self.chunk), unit="chunk")
+            outs = []
+            for i in chunks:
+                outs.append(self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded)))
+                chunks.step_done(outs[-1])
+            if chunks.dry:
+                self._timed = (chunks.seconds_per_step, outs[-1])
         # a dry run played the first chunks only: the others repeat them (same shapes)
-        outs = [outs[j % len(outs)] for j in range((n + pad) // self.chunk)]
+        outs = [outs[j % len(outs)] for j in range(count)]
         fitness, descriptor, path = (
             jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts) for parts in zip(*outs)
         )

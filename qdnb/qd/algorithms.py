@@ -34,6 +34,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from qdnb.core import dryrun
@@ -350,18 +351,26 @@ def run_seeds(
 
 
 def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, *args: Any) -> Any:
-    """``run_seeds`` in a dry run (``qdnb.core.dryrun``): one seed first.  When all the
-    seeds' steps would take under ``SLOW_STEP_S``, they then run at once, as in the full
-    run, and that is what is recorded; otherwise the one seed stands for all of them
+    """``run_seeds`` in a dry run (``qdnb.core.dryrun``): one seed first.  When a step
+    of all the seeds would take under ``ALL_SEEDS_S``, they then run at once, as in the
+    full run, and that is what is recorded; otherwise the one seed stands for all of them
     (seeds side by side are independent copies of the same shapes: its time and memory
-    count once per seed) and its results are repeated in every seed's slot."""
+    count once per seed; on the QD-PG page five times one seed's step came to a median
+    1.0 times a step of all five, ``bench/results/paper_dryrun_seed_scaling.json``) and
+    its results are repeated in every seed's slot."""
     num_seeds, desc = len(keys), args[5]
     with dryrun.held_back() as one_seed, dryrun.repeats(num_seeds, side_by_side=True):
         out = run_seeds(algorithm, keys[:1], *args)
     slow = max((r.get("seconds_per_step", 0.0) for r in one_seed), default=0.0)
-    if slow * num_seeds <= dryrun.SLOW_STEP_S:
+    if slow * num_seeds <= dryrun.ALL_SEEDS_S:
         with dryrun.uncut():
             return run_seeds(algorithm, keys, *args)
     dryrun.count(f"{desc or 'loop'}: seeds side by side", num_seeds, 1)
     dryrun.write(one_seed)
-    return jax.tree.map(lambda x: jnp.repeat(x, num_seeds, axis=0), out)
+    states, tracks, history = out
+    # every seed's slot holds the one seed's results: the final states as read-only views
+    # of it (at paper scale five copies of Chapter 4's states outgrow a 24 GB host), the
+    # history as copies (small, and some pages write into it)
+    view = lambda x: np.broadcast_to(np.asarray(x), (num_seeds,) + x.shape[1:])
+    copies = lambda x: jnp.repeat(x, num_seeds, axis=0)
+    return jax.tree.map(view, states), jax.tree.map(view, tracks), jax.tree.map(copies, history)

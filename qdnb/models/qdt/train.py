@@ -84,10 +84,12 @@ def fit(
     step=None,
     progress: bool = True,
     desc: str = "QDT",
+    program: str | None = None,
 ) -> TrainResult:
     """Train on ``data`` for ``epochs`` epochs and call ``evaluate(params, epoch)``
     after every ``eval_every`` epochs; ``evaluate`` returns scores with an
-    ``avg_distance`` (lower is better).
+    ``avg_distance`` (lower is better).  ``program`` names the compiled evaluation
+    that fits share (a dry run times it once: ``qdnb.core.dryrun.timed``).
 
     An epoch is a pass over a fresh permutation in minibatches of ``batch_size``
     trajectories, the last partial one dropped; a dataset smaller than a batch
@@ -145,7 +147,9 @@ def fit(
             steps.step_done(loss)
         result.losses.append(float(jnp.mean(jnp.stack(losses))))
         if epoch % eval_every == 0 or dry:
-            scores = dryrun.timed(f"{desc} rollouts", epochs // eval_every, evaluate, params, epoch)
+            scores = dryrun.timed(
+                f"{desc} rollouts", epochs // eval_every, evaluate, params, epoch, same_as=program
+            )
             result.evaluations.append({"epoch": epoch, **scores})
             if scores["avg_distance"] < best:
                 best, result.best_epoch, result.params = scores["avg_distance"], epoch, params
