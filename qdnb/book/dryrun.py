@@ -76,12 +76,13 @@ def gpu_rates(bench_dir: Path | None = None) -> list[dict[str, Any]]:
             )
     probe = load("me_vs_mels_probe_h100.json")
     if probe:
-        for method in ("ME-LS", "ME"):  # ME-LS first: "ME" is also a fragment of its name
+        for method in ("ME-LS", "ME"):
             if method in probe:
                 rates.append(
                     {
                         "notebook": "ch4_reproducibility",
-                        "match": f"ant_omni {method}",
+                        "match": f"ant_omni {method}",  # that loop only, not ME-Sampling
+                        "exact": True,
                         "per": "env_step",
                         "rate": probe[method]["steps_per_s"],
                         "source": "me_vs_mels_probe_h100.json",
@@ -166,7 +167,8 @@ def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[st
     run holds side by side where the dry run ran one (``memory_factor``)."""
     repeats = loop.get("repeats", 1.0)
     steps = loop["full_steps"]
-    cpu_s = repeats * (loop.get("compile_s", 0.0) + steps * loop["seconds_per_step"])
+    per_step = loop.get("seconds_per_step")  # None: not run on this machine ("skipped")
+    cpu_s = None if per_step is None else repeats * (loop.get("compile_s", 0.0) + steps * per_step)
     gpu_h = None
     if rate is not None:
         if rate["per"] == "gpu_step":  # a step of all the seeds at once: repeat the rest only
@@ -179,8 +181,10 @@ def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[st
     scale = loop.get("memory_factor", 1.0)  # seeds side by side, one of them run
     carry, outputs = scale * loop.get("carry_bytes", 0), scale * loop.get("outputs_bytes", 0)
     device = carry + outputs + scale * loop.get("xla_temp_bytes", 0) * loop.get("devices", 1)
+    if loop["kind"] == "skipped":  # XLA's CPU plan of a step this machine cannot run: not a GPU's
+        device = 0
     return {
-        "cpu_hours": cpu_s / 3600,
+        "cpu_hours": None if cpu_s is None else cpu_s / 3600,
         "gpu_hours": gpu_h,
         "gpu_rate_source": None if rate is None else f"{rate['source']}: {rate['what']}",
         "checkpoint_bytes": carry + outputs if loop["kind"] == "scan" else 0,
@@ -203,7 +207,7 @@ def summarise(
         else:
             loops.append({**rec, **project(rec, matching_rate(notebook, rec, rates))})
     gpu = [loop["gpu_hours"] for loop in loops]
-    cpu_hours = sum(loop["cpu_hours"] for loop in loops)
+    cpu_hours = sum(loop["cpu_hours"] or 0.0 for loop in loops)
     checkpoints = CHECKPOINTS_KEPT * sum(loop["checkpoint_bytes"] for loop in loops)
     peak_device = max([loop["device_bytes"] for loop in loops] or [0])
     dataset_bytes = sum(d["full_bytes"] for d in data)
@@ -213,8 +217,9 @@ def summarise(
         "gpu_hours_measured": sum(g for g in gpu if g is not None),
         "loops_with_gpu_rate": sum(g is not None for g in gpu),
         "cpu_hours_without_gpu_rate": sum(
-            loop["cpu_hours"] for loop in loops if loop["gpu_hours"] is None
+            loop["cpu_hours"] or 0.0 for loop in loops if loop["gpu_hours"] is None
         ),
+        "loops_not_run_here": sum(loop["kind"] == "skipped" for loop in loops),
         "peak_rss_bytes": max([r.get("peak_rss_bytes", 0) for r in records] or [0]),
         "peak_device_bytes": peak_device,
         "fits_gpu": peak_device < GPU_MEMORY_BYTES,
@@ -380,7 +385,12 @@ def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
                 "notebook": name,
                 "dry run": "ran" if nb["status"] == "ok" else "FAILED",
                 "loops": str(t["loops"]),
-                "hours on this CPU": hours(t["cpu_hours"]),
+                "hours on this CPU": hours(t["cpu_hours"])
+                + (
+                    f" (and {t['loops_not_run_here']} loops it cannot run)"
+                    if t.get("loops_not_run_here")
+                    else ""
+                ),
                 "hours on one H100": gpu,
                 "device memory (largest loop)": gigabytes(t["peak_device_bytes"])
                 + ("" if t["fits_gpu"] else " (over 80 GB)"),
@@ -428,8 +438,12 @@ def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
                 "loop": name + (f" (×{runs:g})" if runs != 1 else ""),
                 "length": f"{sum(loop['full_steps'] for loop in loops):,} {unit}s",
                 "compile": f"{first['compile_s']:.1f} s",
-                "per step": f"{first['seconds_per_step']:.3g} s",
-                "this CPU": hours(sum(loop["cpu_hours"] for loop in loops)),
+                "per step": "—"
+                if first.get("seconds_per_step") is None
+                else f"{first['seconds_per_step']:.3g} s",
+                "this CPU": "not run here"
+                if first["kind"] == "skipped"
+                else hours(sum(loop["cpu_hours"] or 0.0 for loop in loops)),
                 "one H100": hours(None if None in gpu else sum(gpu)),
                 "state": gigabytes(
                     max(loop.get("carry_bytes", 0) * loop.get("memory_factor", 1) for loop in loops)
@@ -459,6 +473,16 @@ def page_markdown(report: dict[str, Any] | None) -> str:
         parts += ["", f"### {registry.chapter(name).title}", ""]
         if nb["error"]:
             parts += ["```text", nb["error"].strip(), "```", ""]
+        skipped = {
+            loop["name"]: loop["reason"] for loop in nb["loops"] if loop["kind"] == "skipped"
+        }
+        if skipped:
+            parts += [
+                "Not run on this machine: "
+                + "; ".join(f"{name}: {why}" for name, why in skipped.items())
+                + ".",
+                "",
+            ]
         if nb["cuts"]:
             cut = "; ".join(f"{c['name']}: {c['kept']:,} of {c['full']:,}" for c in nb["cuts"])
             parts += [f"Counts cut (no shape depends on them): {cut}.", ""]

@@ -397,7 +397,7 @@ def run_environment(
         name: removed_region(name, np.asarray(goals), low, high, cfg.tiles) for name in PRUNINGS
     }
 
-    def train(data, k_train, k_eval, desc):
+    def train(data, k_train, k_eval, desc, full_size):
         if data.size == 0:  # a pruning that removed every trajectory: nothing to learn from
             return untrained_run(cfg, len(goals))
 
@@ -425,6 +425,7 @@ def run_environment(
             progress=progress,
             desc=desc,
             program=f"{env_name} QDT rollouts",
+            full_size=full_size,
         )
         best = next(e for e in res.evaluations if e["epoch"] == res.best_epoch)
         return {
@@ -470,7 +471,7 @@ def run_environment(
                     "spread": np.asarray(acc.spread),
                     "filled": int(np.sum(np.asarray(reps[m].filled))),
                 }
-            data = {}
+            data, full_size = {}, {}
             for m in sources:  # Section 4.4.4
                 sel = select_policies(reps[m], zones, player, task.selection_episodes, k_sel)
                 seed["selection"][m] = sel
@@ -485,16 +486,19 @@ def run_environment(
                     "spread": np.asarray(acc.spread),
                 }
                 data[m] = record(reps[m], sel.cells, task.episodes_per_policy, recorder, k_rec)
+                # the dataset's size in the full run (a dry run records fewer episodes)
+                full_size[m] = sel.cells.size * task.episodes_per_policy
             if full:
                 every = np.flatnonzero(np.asarray(reps["ME-LS"].filled))
                 naive_epp = naive_episodes_per_policy(
                     seed["selection"]["ME-LS"].cells.size, task.episodes_per_policy, every.size
                 )
                 data[NAIVE] = record(reps["ME-LS"], every, naive_epp, recorder, k_rec)
+                full_size[NAIVE] = every.size * naive_epp
                 seed["naive_episodes_per_policy"] = naive_epp
             for name in data:
                 seed["qdt"][name] = train(
-                    data[name], k_train, k_eval, f"{env_name} seed {i} QDT({name})"
+                    data[name], k_train, k_eval, f"{env_name} seed {i} QDT({name})", full_size[name]
                 )
             pruned = (
                 {
@@ -507,8 +511,13 @@ def run_environment(
                 else {}
             )
             for name in pruned:
+                kept = pruned[name].size / max(data["ME-LS"].size, 1)
                 res = train(
-                    pruned[name], k_train, k_eval, f"{env_name} seed {i} QDT(ME-LS, {name})"
+                    pruned[name],
+                    k_train,
+                    k_eval,
+                    f"{env_name} seed {i} QDT(ME-LS, {name})",
+                    round(full_size["ME-LS"] * kept),
                 )
                 if name in ("tiles", "upper"):
                     res["avg_distance_removed"] = float(res["distance"][removed[name]].mean())

@@ -168,6 +168,33 @@ def _memory(compiled: Any) -> dict[str, int]:
     }
 
 
+def host_memory_bytes() -> int:
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def too_big_here(name: str, jitted: Any, *args: Any, full_steps: int = 1) -> bool:
+    """In a dry run: compile ``jitted`` for ``args`` and, when XLA's working memory for
+    it would not fit this machine's memory, record the loop as not run here (with that
+    memory) and return true; the caller then skips its steps.  False outside a dry run."""
+    if active() is None:
+        return False
+    began = time.perf_counter()
+    memory = _memory(jitted.lower(*args).compile())
+    need = sum(memory.values())
+    if need < 0.8 * host_memory_bytes():
+        return False
+    record(
+        "skipped",
+        name,
+        full_steps=int(full_steps),
+        compile_s=time.perf_counter() - began,
+        reason=f"a step needs {need / 1e9:.0f} GB of working memory on this machine's "
+        f"XLA (CPU), which has {host_memory_bytes() / 1e9:.0f} GB",
+        **memory,
+    )
+    return True
+
+
 def scan(
     step: Callable[[Any], tuple[Any, Any]], carry: Any, num_steps: int, name: str | None
 ) -> tuple[Any, Any]:

@@ -85,11 +85,14 @@ def fit(
     progress: bool = True,
     desc: str = "QDT",
     program: str | None = None,
+    full_size: int | None = None,
 ) -> TrainResult:
     """Train on ``data`` for ``epochs`` epochs and call ``evaluate(params, epoch)``
     after every ``eval_every`` epochs; ``evaluate`` returns scores with an
     ``avg_distance`` (lower is better).  ``program`` names the compiled evaluation
-    that fits share (a dry run times it once: ``qdnb.core.dryrun.timed``).
+    that fits share (a dry run times it once: ``qdnb.core.dryrun.timed``); ``full_size``
+    the dataset's size in the full run, where a dry run recorded fewer episodes (its
+    training's length is counted at that size).
 
     An epoch is a pass over a fresh permutation in minibatches of ``batch_size``
     trajectories, the last partial one dropped; a dataset smaller than a batch
@@ -131,6 +134,17 @@ def fit(
     dry = dryrun.active() is not None
     if dry:  # one epoch, cut to its first batches, and one evaluation: qdnb.core.dryrun
         epochs_run = epochs_run[:1]
+        first = jax.tree.map(lambda x: x[np.resize(np.arange(data.size), batch_size)], data)
+        steps_per_epoch = max(1, (full_size or data.size) // batch_size)
+        if dryrun.too_big_here(
+            f"{desc} training", step, params, opt_state, first, k_train,
+            full_steps=epochs * steps_per_epoch,
+        ):  # fmt: skip
+            scores = dryrun.timed(f"{desc} rollouts", epochs // eval_every, evaluate, params, 0,
+                                  same_as=program)  # fmt: skip
+            result.evaluations.append({"epoch": 0, **scores})
+            result.losses.append(float("nan"))
+            return result
     bar = tqdm(epochs_run, desc=desc, disable=not progress, leave=True, initial=start, total=epochs)
     for epoch in bar:
         k_perm, k_drop, k_train = jax.random.split(k_train, 3)
@@ -139,7 +153,8 @@ def fit(
             order = np.resize(order, batch_size)
         batches = order[: order.size // batch_size * batch_size].reshape(-1, batch_size)
         losses = []
-        steps = dryrun.steps(f"{desc} training", range(len(batches)), full=epochs * len(batches))
+        full = epochs * max(1, (full_size or data.size) // batch_size) if dry else None
+        steps = dryrun.steps(f"{desc} training", range(len(batches)), full=full)
         for i in steps:
             batch = jax.tree.map(lambda x: x[batches[i]], data)
             params, opt_state, loss = step(params, opt_state, batch, jax.random.fold_in(k_drop, i))
