@@ -254,6 +254,7 @@ def test_summarise_totals_and_the_page():
                 **s,
                 "status": "ok",
                 "error": None,
+                "wall_s": 60.0,
                 "command": "python -m qdnb run ch2_primer --scale paper",
                 "ran_on": {"cpu_count": 2, "device": "2 CPU devices", "git": "abc", "date": "d"},
             }
@@ -266,6 +267,7 @@ def test_summarise_totals_and_the_page():
     assert "python -m qdnb run ch2_primer --scale paper" in page and "over 80 GB" in page
     assert "episodes: 10 of 3,000" in page
     assert "No dry run" in report.page_markdown(None)
+    assert "Not in this dry run yet" in page and "`ch5_flow_lenia`" in page
 
 
 def test_unknown_notebooks_and_scales_are_refused_with_the_valid_names(capsys):

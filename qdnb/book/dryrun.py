@@ -22,6 +22,12 @@ from pathlib import Path
 from typing import Any
 
 from qdnb.book import provenance, registry, runner
+from qdnb.book.paper_page import (  # noqa: F401 (the report's readers, beside its writer)
+    chapter_rows,
+    loop_rows,
+    page_markdown,
+    text_table,
+)
 from qdnb.core import paths
 from qdnb.core.config import check_scale
 from qdnb.core.dryrun import ENV
@@ -354,140 +360,3 @@ def resummarise(scale: str = "paper", out: Path | None = None, work: Path | None
             raise ValueError(f"no records of {name}'s dry run under {where}")
         notebooks[name] = {**nb, **summarise(name, records, rates)}
     return write_report(out, report["scale"], report["seed"], notebooks)
-
-
-# --- reading the report ------------------------------------------------------------------
-
-
-def gigabytes(n: float) -> str:
-    return f"{n / 1e9:.3g} GB" if n >= 1e8 else f"{n / 1e6:.2g} MB"
-
-
-def hours(h: float | None) -> str:
-    if h is None:
-        return "not measured"
-    return f"{h:.3g} h" if h >= 0.1 else f"{h * 60:.2g} min"
-
-
-def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
-    """One row per notebook: what its run at the report's scale needs."""
-    rows = []
-    for name, nb in report["notebooks"].items():
-        t = nb["totals"]
-        gpu = (
-            "no rate measured"
-            if not t["loops_with_gpu_rate"]
-            else f"{hours(t['gpu_hours_measured'])} for {t['loops_with_gpu_rate']} of "
-            f"{t['loops']} loops"
-        )
-        rows.append(
-            {
-                "notebook": name,
-                "dry run": "ran" if nb["status"] == "ok" else "FAILED",
-                "loops": str(t["loops"]),
-                "hours on this CPU": hours(t["cpu_hours"])
-                + (
-                    f" (and {t['loops_not_run_here']} loops it cannot run)"
-                    if t.get("loops_not_run_here")
-                    else ""
-                ),
-                "hours on one H100": gpu,
-                "device memory (largest loop)": gigabytes(t["peak_device_bytes"])
-                + ("" if t["fits_gpu"] else " (over 80 GB)"),
-                "host memory (dry run's peak)": gigabytes(t["peak_rss_bytes"]),
-                "checkpoints + datasets": gigabytes(t["checkpoint_bytes"] + t["dataset_bytes"]),
-                "command": f"`{nb['command']}`",
-            }
-        )
-    return rows
-
-
-def text_table(report: dict[str, Any]) -> str:
-    rows = chapter_rows(report)
-    if not rows:
-        return "(no notebook in the report)"
-    keys = [k for k in rows[0] if k != "command"]
-    width = {k: max(len(k), *(len(r[k]) for r in rows)) for k in keys}
-    line = lambda r: "  ".join(r[k].ljust(width[k]) for k in keys)
-    return "\n".join([line({k: k for k in keys})] + [line(r) for r in rows])
-
-
-def markdown_table(rows: list[dict[str, str]]) -> str:
-    if not rows:
-        return ""
-    keys = list(rows[0])
-    cell = lambda v: str(v).replace("|", "\\|")
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    lines += ["| " + " | ".join(cell(r[k]) for k in keys) + " |" for r in rows]
-    return "\n".join(lines)
-
-
-def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
-    """One row per loop name: the calls of one loop (the episodes played for each test,
-    the trainings of each dataset) summed, in the order they first ran."""
-    groups: dict[str, list[dict[str, Any]]] = {}
-    for loop in nb["loops"]:
-        groups.setdefault(loop["name"], []).append(loop)
-    rows = []
-    for name, loops in groups.items():
-        first, gpu = loops[0], [loop["gpu_hours"] for loop in loops]
-        runs = sum(loop["repeats"] for loop in loops)
-        unit = first.get("unit", "step")
-        rows.append(
-            {
-                "loop": name + (f" (×{runs:g})" if runs != 1 else ""),
-                "length": f"{sum(loop['full_steps'] for loop in loops):,} {unit}s",
-                "compile": f"{first['compile_s']:.1f} s",
-                "per step": "—"
-                if first.get("seconds_per_step") is None
-                else f"{first['seconds_per_step']:.3g} s",
-                "this CPU": "not run here"
-                if first["kind"] == "skipped"
-                else hours(sum(loop["cpu_hours"] or 0.0 for loop in loops)),
-                "one H100": hours(None if None in gpu else sum(gpu)),
-                "state": gigabytes(
-                    max(loop.get("carry_bytes", 0) * loop.get("memory_factor", 1) for loop in loops)
-                ),
-                "device": gigabytes(max(loop["device_bytes"] for loop in loops)),
-            }
-        )
-    return rows
-
-
-def page_markdown(report: dict[str, Any] | None) -> str:
-    """The body of the book's "Running at paper scale" page, from the report."""
-    if not report or not report.get("notebooks"):
-        return (
-            "No dry run has been recorded yet: `python -m qdnb dryrun all` writes "
-            "`bench/results/paper_dryrun.json`, which this page shows."
-        )
-    first = next(iter(report["notebooks"].values()))["ran_on"]
-    parts = [
-        f"Dry run at `{report['scale']}` on {first['cpu_count']} CPU cores "
-        f"({first['device']}), code `{first['git']}`, {first['date']}; "
-        f"{report['wall_s'] / 60:.0f} minutes in all.",
-        "",
-        markdown_table(chapter_rows(report)),
-    ]
-    for name, nb in report["notebooks"].items():
-        parts += ["", f"### {registry.chapter(name).title}", ""]
-        if nb["error"]:
-            parts += ["```text", nb["error"].strip(), "```", ""]
-        skipped = {
-            loop["name"]: loop["reason"] for loop in nb["loops"] if loop["kind"] == "skipped"
-        }
-        if skipped:
-            parts += [
-                "Not run on this machine: "
-                + "; ".join(f"{name}: {why}" for name, why in skipped.items())
-                + ".",
-                "",
-            ]
-        if nb["cuts"]:
-            cut = "; ".join(f"{c['name']}: {c['kept']:,} of {c['full']:,}" for c in nb["cuts"])
-            parts += [f"Counts cut (no shape depends on them): {cut}.", ""]
-        parts.append(markdown_table(loop_rows(nb)))
-        rates = sorted({loop["gpu_rate_source"] for loop in nb["loops"] if loop["gpu_rate_source"]})
-        if rates:
-            parts += ["", "GPU rates: " + "; ".join(rates) + "."]
-    return "\n".join(parts) + "\n"

@@ -391,10 +391,10 @@ def status_table(scale: str) -> str:
 
 def paper_scale_page() -> str:
     """The body of "Running at paper scale": the committed dry run's report."""
-    from qdnb.book import dryrun
+    from qdnb.book import paper_page
 
-    path = dryrun.report_path("paper")
-    return dryrun.page_markdown(json.loads(path.read_text()) if path.exists() else None)
+    path = paths.ROOT / "bench" / "results" / "paper_dryrun.json"
+    return paper_page.page_markdown(json.loads(path.read_text()) if path.exists() else None)
 
 
 def copy_mathjax(extra_dir: Path) -> None:

@@ -1,0 +1,163 @@
+"""Reading a dry run's report (``qdnb.book.dryrun``): the per-chapter and per-loop
+tables of the book's "Running at paper scale" page, and the terminal's."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from qdnb.book import registry
+
+
+def gigabytes(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e8 else f"{n / 1e6:.2g} MB"
+
+
+def hours(h: float | None) -> str:
+    if h is None:
+        return "not measured"
+    return f"{h:.3g} h" if h >= 0.1 else f"{h * 60:.2g} min"
+
+
+def book_order() -> list[str]:
+    return [c.name for c in registry.CHAPTERS if c.notebook.exists()]
+
+
+def in_book_order(report: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    return [(n, report["notebooks"][n]) for n in book_order() if n in report["notebooks"]]
+
+
+def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
+    """One row per notebook: what its run at the report's scale needs."""
+    rows = []
+    for name, nb in in_book_order(report):
+        t = nb["totals"]
+        gpu = (
+            "no rate measured"
+            if not t["loops_with_gpu_rate"]
+            else f"{hours(t['gpu_hours_measured'])} for {t['loops_with_gpu_rate']} of "
+            f"{t['loops']} loops"
+        )
+        rows.append(
+            {
+                "notebook": name,
+                "dry run": "ran" if nb["status"] == "ok" else "FAILED",
+                "loops": str(t["loops"]),
+                "hours on this CPU": hours(t["cpu_hours"])
+                + (
+                    f" (and {t['loops_not_run_here']} loops it cannot run)"
+                    if t.get("loops_not_run_here")
+                    else ""
+                ),
+                "hours on one H100": gpu,
+                "device memory (largest loop)": gigabytes(t["peak_device_bytes"])
+                + ("" if t["fits_gpu"] else " (over 80 GB)"),
+                "host memory (dry run's peak)": gigabytes(t["peak_rss_bytes"]),
+                "checkpoints + datasets": gigabytes(t["checkpoint_bytes"] + t["dataset_bytes"]),
+                "command": f"`{nb['command']}`",
+            }
+        )
+    return rows
+
+
+def text_table(report: dict[str, Any]) -> str:
+    rows = chapter_rows(report)
+    if not rows:
+        return "(no notebook in the report)"
+    keys = [k for k in rows[0] if k != "command"]
+    width = {k: max(len(k), *(len(r[k]) for r in rows)) for k in keys}
+    line = lambda r: "  ".join(r[k].ljust(width[k]) for k in keys)
+    return "\n".join([line({k: k for k in keys})] + [line(r) for r in rows])
+
+
+def markdown_table(rows: list[dict[str, str]]) -> str:
+    if not rows:
+        return ""
+    keys = list(rows[0])
+    cell = lambda v: str(v).replace("|", "\\|")
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(cell(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
+    """One row per loop name: the calls of one loop (the episodes played for each test,
+    the trainings of each dataset) summed, in the order they first ran."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for loop in nb["loops"]:
+        groups.setdefault(loop["name"], []).append(loop)
+    rows = []
+    for name, loops in groups.items():
+        first, gpu = loops[0], [loop["gpu_hours"] for loop in loops]
+        runs = sum(loop["repeats"] for loop in loops)
+        unit = first.get("unit", "step")
+        rows.append(
+            {
+                "loop": name + (f" (×{runs:g})" if runs != 1 else ""),
+                "length": f"{sum(loop['full_steps'] for loop in loops):,} {unit}s",
+                "compile": f"{first['compile_s']:.1f} s",
+                "per step": "—"
+                if first.get("seconds_per_step") is None
+                else f"{first['seconds_per_step']:.3g} s",
+                "this CPU": "not run here"
+                if first["kind"] == "skipped"
+                else hours(sum(loop["cpu_hours"] or 0.0 for loop in loops)),
+                "one H100": hours(None if None in gpu else sum(gpu)),
+                "state": gigabytes(
+                    max(loop.get("carry_bytes", 0) * loop.get("memory_factor", 1) for loop in loops)
+                ),
+                "device": gigabytes(max(loop["device_bytes"] for loop in loops)),
+            }
+        )
+    return rows
+
+
+def page_markdown(report: dict[str, Any] | None) -> str:
+    """The body of the book's "Running at paper scale" page, from the report."""
+    if not report or not report.get("notebooks"):
+        return (
+            "No dry run has been recorded yet: `python -m qdnb dryrun all` writes "
+            "`bench/results/paper_dryrun.json`, which this page shows."
+        )
+    first = next(iter(report["notebooks"].values()))["ran_on"]
+    missing = [n for n in book_order() if n not in report["notebooks"]]
+    parts = [
+        "## What each chapter needs",
+        "",
+        f"Dry run at `{report['scale']}` on {first['cpu_count']} CPU cores "
+        f"({first['device']}); {report['wall_s'] / 60:.0f} minutes for the notebooks below "
+        "(each notebook's code version and date are in its section).",
+        "",
+        markdown_table(chapter_rows(report)),
+    ]
+    if missing:
+        parts += ["", f"Not in this dry run yet: {', '.join(f'`{n}`' for n in missing)}."]
+    parts += ["", "## Loop by loop"]
+    for name, nb in in_book_order(report):
+        ran = nb["ran_on"]
+        parts += [
+            "",
+            f"### {registry.chapter(name).title}",
+            "",
+            f"Ran {ran['date']}, code `{ran['git']}`, {nb['wall_s']:.0f} s.",
+            "",
+        ]
+        if nb["error"]:
+            parts += ["```text", nb["error"].strip(), "```", ""]
+        skipped = {
+            loop["name"]: loop["reason"] for loop in nb["loops"] if loop["kind"] == "skipped"
+        }
+        if skipped:
+            parts += [
+                "Not run on this machine: "
+                + "; ".join(f"{name}: {why}" for name, why in skipped.items())
+                + ".",
+                "",
+            ]
+        if nb["cuts"]:
+            cut = "; ".join(f"{c['name']}: {c['kept']:,} of {c['full']:,}" for c in nb["cuts"])
+            parts += [f"Counts cut: {cut}.", ""]
+        parts.append(markdown_table(loop_rows(nb)))
+        rates = sorted({loop["gpu_rate_source"] for loop in nb["loops"] if loop["gpu_rate_source"]})
+        if rates:
+            parts += ["", "GPU rates: " + "; ".join(rates) + "."]
+    return "\n".join(parts) + "\n"
