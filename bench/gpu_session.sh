@@ -2,17 +2,22 @@
 # What a session lent an H100/H200 for about ten minutes runs at once, in order:
 #
 #   1. the environment check: devices, package versions, the deterministic-ops flag;
-#   2. the primer at `paper` (about 141 s on one H100 before), then published as an archive;
-#   3. bench/scale_out.py --real: every stage's rate on the GPU's own devices;
-#   4. the dry run of the other chapters at `paper` on the GPU (python -m qdnb dryrun).
+#   2. the primer at `paper`, published as an archive, unless data/published holds it
+#      (run on an H100 on 2026-12-05: 84 s, committed);
+#   3. the dry run at `paper` (python -m qdnb dryrun) of each notebook no GPU dry run in
+#      bench/results/*_dryrun_gpu*.json has finished (DRYRUN_NOTEBOOKS overrides), one step
+#      of at most DRYRUN_STEP_S (240) seconds each;
+#   4. bench/scale_out.py --real: every stage's rate on the GPU's own devices;
+#   5. the dry runs' report rebuilt from their records: a notebook a step's limit stopped
+#      is reported "cut off", with the loops it reached (their GPU rates count).
 #
 # Everything it writes goes under one folder, OUT (the first argument, else $OUT, else
 # bench/results/gpu_session/): log.txt, environment.json, the published archive,
-# scale_out_gpu.json, paper_dryrun_gpu.json (copied to bench/results/, the CPU dry run's
-# report gets its GPU hours: python -m qdnb dryrun all --report-only).  SESSION_S (600)
-# bounds the whole session: each step's timeout is cut to what is left.  Safe to run again: the primer resumes from
-# its checkpoints (data/runs/paper/ch2_primer/checkpoints) and an archive already in OUT is
-# never overwritten; a step that fails is logged and the next one still runs.
+# scale_out_gpu.json, paper_dryrun_gpu.json (copy it to bench/results/ under a name ending
+# _dryrun_gpu.json; the CPU dry run's report then gets its GPU hours with
+# python -m qdnb dryrun all --report-only).  SESSION_S (520) bounds steps 1-4 (the device
+# call's 600 s, less the machine's start and step 5): each step's timeout is cut to what is
+# left.  A step that fails is logged and the next one still runs.
 #
 # The GPU machines cannot reach a package registry.  Their image has JAX (CUDA), flax,
 # optax, orbax, pandas and matplotlib; the rest of requirements.lock travels as wheels:
@@ -31,7 +36,7 @@ pandas matplotlib scipy tqdm pyyaml jinja2 markupsafe packaging pillow pygments 
 etils msgpack protobuf tensorstore toolz treescope rich humanize nest-asyncio fsspec attrs
 python-dateutil six pyparsing kiwisolver cycler fonttools contourpy tzdata pytz simplejson
 psutil requests urllib3 idna certifi charset-normalizer click zipp wheel setuptools pip
-platformdirs filelock aiofiles"
+filelock aiofiles"
 
 # what only the book's rendering, JupyterLab or the tests need: not carried (64 MiB a call)
 BOOK_ONLY="jupyter-book pydata-sphinx-theme accessible-pygments alabaster babel docutils
@@ -69,9 +74,10 @@ if ls .whl/*.whl >/dev/null 2>&1; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
         --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
 fi
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}  # qdnb itself, for bench/ and the kernels
 PY=${PY:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}
 
-SESSION_S=${SESSION_S:-600}  # the whole session's seconds: no step runs past them
+SESSION_S=${SESSION_S:-520}  # the whole session's seconds: no step runs past them
 
 step() {  # step NAME SECONDS COMMAND...: run, time and log one step; never stop the session
     local name=$1 limit=$2
@@ -107,15 +113,34 @@ json.dump(info, open(sys.argv[1], "w"), indent=1)
 EOF
 
 ARCHIVE="$OUT/paper-ch2_primer.tar.gz"
-if [ -e "$ARCHIVE" ]; then
-    echo "── the primer at paper is already published: $ARCHIVE (left as it is)" | tee -a "$LOG"
+KEPT=data/published/paper/ch2_primer/ch2_primer-paper.tar.gz  # a session's run, committed
+if [ -e "$ARCHIVE" ] || [ -e "$KEPT" ]; then
+    echo "── the primer at paper is already published ($KEPT): not run again" | tee -a "$LOG"
 else
     step "ch2_primer at paper" 300 "$PY" -m qdnb run ch2_primer --scale paper
     step "publish ch2_primer" 60 "$PY" -m qdnb publish paper ch2_primer --out "$ARCHIVE"
 fi
+# the dry runs not yet made on a GPU (bench/results/*_dryrun_gpu*.json), one step each: a
+# notebook the step's limit cuts off still leaves its loops' records, gathered at the end
+NOTEBOOKS=${DRYRUN_NOTEBOOKS:-$("$PY" - <<'EOF'
+import json
+from pathlib import Path
+from qdnb.book.runner import notebook_names
+done = set()
+for path in Path("bench/results").glob("*_dryrun_gpu*.json"):
+    nbs = json.loads(path.read_text()).get("notebooks", {})
+    done |= {n for n, nb in nbs.items() if nb.get("status") == "ok"}
+print(" ".join(n for n in notebook_names() if n not in done and n != "ch2_primer"))
+EOF
+)}
+REPORT="$OUT/paper_dryrun_gpu.json"
+for nb in $NOTEBOOKS; do
+    step "dry run of $nb" "${DRYRUN_STEP_S:-240}" "$PY" -m qdnb dryrun "$nb" --scale paper \
+        --out "$REPORT"
+done
 step "scale_out --real" 150 "$PY" bench/scale_out.py --real --out "$OUT/scale_out_gpu.json"
-# the report is written after each notebook: one the session's end cuts off keeps the others
-step "dry run of the other chapters" 600 "$PY" -m qdnb dryrun ch3_qdpg ch3_baselines \
-    ch3_evolution ch4_reproducibility ch4_qdt ch5_flow_lenia --scale paper \
-    --out "$OUT/paper_dryrun_gpu.json"
+# kept out of SESSION_S: what the cut-off dry runs reached, from their records
+echo "── the dry runs' report, from their records" | tee -a "$LOG"
+timeout 40 "$PY" -m qdnb dryrun $NOTEBOOKS --scale paper --report-only --out "$REPORT" \
+    >>"$LOG" 2>&1
 echo "── done: $OUT" | tee -a "$LOG"

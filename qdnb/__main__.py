@@ -152,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
             set_devices(args.devices)
             out = Path(args.out) if args.out else None
             if args.report_only:
-                report = dryrun.resummarise(args.scale, out)
+                names = None if args.notebooks == ["all"] else args.notebooks
+                report = dryrun.resummarise(args.scale, out, names=names)
             else:
                 report = dryrun.dry_run(args.notebooks, args.scale, args.seed, out=out)
             print(dryrun.text_table(report))

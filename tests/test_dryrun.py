@@ -349,3 +349,23 @@ def test_a_step_too_big_for_this_machine_is_reported_not_run(records, monkeypatc
     summary = report.summarise("ch4_qdt", records(), [])
     assert summary["totals"]["loops_not_run_here"] == 1
     assert report.loop_rows(summary)[0]["this CPU"] == "not run here"
+
+
+def test_a_dry_run_stopped_from_outside_is_reported_cut_off_with_its_loops(tmp_path):
+    """A session's time limit kills the dry run mid-notebook: no report entry, but the
+    loops it reached are in its records; the report rebuilt from them says `cut off`."""
+    loop = {"kind": "loop", "name": "FLT", "repeats": 1, "full_steps": 100, "steps_run": 2,
+            "compile_s": 0.0, "seconds_per_step": 36.0, "peak_rss_bytes": 9}  # fmt: skip
+    where = tmp_path / "tiny" / "ch5_flow_lenia"
+    where.mkdir(parents=True)
+    (where / "loops.jsonl").write_text(json.dumps(loop) + "\n")
+    out = tmp_path / "report.json"
+    with pytest.raises(ValueError, match="no dry run report"):
+        report.resummarise("tiny", out, work=tmp_path)  # nothing named, nothing to rebuild
+    got = report.resummarise("tiny", out, work=tmp_path, names=["ch2_primer", "ch5_flow_lenia"])
+    assert list(got["notebooks"]) == ["ch5_flow_lenia"]  # the primer left no records
+    nb = got["notebooks"]["ch5_flow_lenia"]
+    assert nb["status"] == "cut off" and nb["totals"]["cpu_hours"] == pytest.approx(1.0)
+    assert report.chapter_rows(got)[0]["dry run"] == "CUT OFF"
+    with pytest.raises(ValueError, match="not paper"):
+        report.resummarise("paper", out, work=tmp_path)

@@ -160,3 +160,17 @@ def test_the_cli_refuses_a_bad_archive_with_a_clear_error(tmp_path):
         text=True,
     )
     assert proc.returncode == 2 and "error: run.tar.gz: not a readable archive" in proc.stderr
+
+
+def test_the_paper_page_lists_published_runs_with_where_and_when(runs):
+    from qdnb.book import paper_page
+
+    assert paper_page.published_rows("tiny") == []
+    fake_run()
+    archive = publish.publish("tiny", "ch2_primer")
+    (row,) = paper_page.published_rows("tiny")
+    assert row["notebook"] == "ch2_primer" and row["wall time"].endswith(" s")
+    assert row["when"].endswith("UTC") and archive.name in row["archive"]
+    archive.write_bytes(archive.read_bytes()[:100])  # a broken archive is named, not hidden
+    (row,) = paper_page.published_rows("tiny")
+    assert row["ran on"].startswith("unreadable")

@@ -310,13 +310,7 @@ def dry_run(
             "error": ran["error"],
             "wall_s": ran["wall_s"],
             "command": f"python -m qdnb run {name} --scale {scale}",
-            "ran_on": {
-                "machine": platform.processor() or platform.machine(),
-                "cpu_count": os.cpu_count(),
-                "device": provenance.device_text(),
-                "git": provenance.git_sha(),
-                "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            },
+            "ran_on": ran_on(),
             **summarise(name, ran["records"], rates),
         }
         report = write_report(out, scale, seed, notebooks)  # after each: a cut-off run keeps it
@@ -328,6 +322,17 @@ def dry_run(
                 flush=True,
             )
     return report
+
+
+def ran_on() -> dict[str, Any]:
+    """Where and when a dry run ran."""
+    return {
+        "machine": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "device": provenance.device_text(),
+        "git": provenance.git_sha(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    }
 
 
 def write_report(out: Path, scale: str, seed: int, notebooks: dict[str, Any]) -> dict[str, Any]:
@@ -345,18 +350,43 @@ def write_report(out: Path, scale: str, seed: int, notebooks: dict[str, Any]) ->
     return report
 
 
-def resummarise(scale: str = "paper", out: Path | None = None, work: Path | None = None) -> dict:
+def resummarise(
+    scale: str = "paper",
+    out: Path | None = None,
+    work: Path | None = None,
+    names: list[str] | None = None,
+) -> dict:
     """The report again from the dry run's own records (``data/dryrun``), with the GPU
-    rates known now (after a GPU session, say), without running anything."""
+    rates known now (after a GPU session, say), without running anything.  ``names``
+    (default: the report's notebooks) may add notebooks the report lacks: a dry run
+    stopped from outside (a session's time limit) left its loops' records but no
+    report entry; such a notebook is reported ``cut off``, with the loops it reached."""
     out = out or report_path(scale)
-    if not out.exists():
+    report = json.loads(out.read_text()) if out.exists() else None
+    if report is None and not names:
         raise ValueError(f"no dry run report at {out}: run `python -m qdnb dryrun` first")
-    report = json.loads(out.read_text())
-    rates, where = gpu_rates(), (work or paths.DATA / "dryrun") / report["scale"]
-    notebooks = {}
-    for name, nb in report["notebooks"].items():
+    if report is not None and report["scale"] != scale:
+        raise ValueError(f"{out} is a dry run at {report['scale']}, not {scale}")
+    report = report or {"scale": scale, "seed": 0, "notebooks": {}}
+    rates, where = gpu_rates(), (work or paths.DATA / "dryrun") / scale
+    notebooks = dict(report["notebooks"])  # the others as they are
+    for name in resolve(names) if names else list(report["notebooks"]):
         records = read_records(where / name / "loops.jsonl")
+        nb = report["notebooks"].get(name)
+        if nb is None and records:
+            nb = {
+                "status": "cut off",
+                "error": "stopped from outside before the notebook finished: "
+                "the loops it reached are counted, the later ones are missing",
+                "wall_s": 0.0,
+                "command": f"python -m qdnb run {name} --scale {scale}",
+                "ran_on": ran_on(),
+            }
+        if nb is None:
+            continue
         if not records:
             raise ValueError(f"no records of {name}'s dry run under {where}")
         notebooks[name] = {**nb, **summarise(name, records, rates)}
-    return write_report(out, report["scale"], report["seed"], notebooks)
+    if not notebooks:
+        raise ValueError(f"no records of {', '.join(names or [])} under {where}")
+    return write_report(out, scale, report["seed"], notebooks)

@@ -3,9 +3,11 @@ tables of the book's "Running at paper scale" page, and the terminal's."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
-from qdnb.book import registry
+from qdnb.book import publish, registry
+from qdnb.core import paths
 
 
 def gigabytes(n: float) -> str:
@@ -40,7 +42,7 @@ def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
         rows.append(
             {
                 "notebook": name,
-                "dry run": "ran" if nb["status"] == "ok" else "FAILED",
+                "dry run": {"ok": "ran", "cut off": "CUT OFF"}.get(nb["status"], "FAILED"),
                 "loops": str(t["loops"]),
                 "hours on this CPU": hours(t["cpu_hours"])
                 + (
@@ -111,7 +113,32 @@ def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
     return rows
 
 
-def page_markdown(report: dict[str, Any] | None) -> str:
+def published_rows(scale: str, where: Path | None = None) -> list[dict[str, str]]:
+    """One row per run published at ``scale`` (``data/published``): computed in full
+    elsewhere, where, when and in how long."""
+    rows = []
+    for archive in sorted((where or publish.PUBLISHED / scale).glob(f"*/*-{scale}.tar.gz")):
+        try:
+            manifest, _ = publish.read_archive(archive)
+        except publish.ArchiveError as err:
+            rows.append({"notebook": archive.parent.name, "ran on": f"unreadable: {err}"})
+            continue
+        run = manifest["run"]
+        devices = run.get("devices") or {}
+        rows.append(
+            {
+                "notebook": manifest["notebook"],
+                "ran on": f"{devices.get('count', '?')} × {devices.get('kind', run.get('device'))}",
+                "when": manifest["published_at"].replace("T", " ").rstrip("Z") + " UTC",
+                "wall time": f"{run['wall_time_s']:.0f} s",
+                "code": f"`{str(run.get('git_sha'))[:8]}`",
+                "archive": f"`{paths.shown(archive)}`",
+            }
+        )
+    return rows
+
+
+def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]] = ()) -> str:
     """The body of the book's "Running at paper scale" page, from the report."""
     if not report or not report.get("notebooks"):
         return (
@@ -131,6 +158,17 @@ def page_markdown(report: dict[str, Any] | None) -> str:
     ]
     if missing:
         parts += ["", f"Not in this dry run yet: {', '.join(f'`{n}`' for n in missing)}."]
+    if published:
+        parts += [
+            "",
+            "## Runs made in full at this scale",
+            "",
+            "Computed elsewhere and published (`python -m qdnb publish`); "
+            f"`make book SCALE={report['scale']}` imports each one in place of running its "
+            "notebook, and its page says where and when it ran.",
+            "",
+            markdown_table(published),
+        ]
     parts += ["", "## Loop by loop"]
     for name, nb in in_book_order(report):
         ran = nb["ran_on"]

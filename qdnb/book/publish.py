@@ -109,7 +109,7 @@ def read_archive(archive: Path) -> tuple[dict[str, Any], dict[str, bytes]]:
     otherwise."""
     try:
         tar = tarfile.open(archive, "r:gz")
-    except (OSError, tarfile.TarError) as err:
+    except (OSError, tarfile.TarError, EOFError) as err:  # EOFError: cut inside the gzip header
         raise ArchiveError(f"{Path(archive).name}: not a readable archive ({err})") from None
     with tar:
         contents = {}

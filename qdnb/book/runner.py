@@ -394,7 +394,8 @@ def paper_scale_page() -> str:
     from qdnb.book import paper_page
 
     path = paths.ROOT / "bench" / "results" / "paper_dryrun.json"
-    return paper_page.page_markdown(json.loads(path.read_text()) if path.exists() else None)
+    report = json.loads(path.read_text()) if path.exists() else None
+    return paper_page.page_markdown(report, paper_page.published_rows("paper"))
 
 
 def copy_mathjax(extra_dir: Path) -> None:
