@@ -23,7 +23,7 @@ from qdnb.models.qdt.data import (
     removed_upper,
     select_policies,
 )
-from qdnb.models.qdt.evaluate import play
+from qdnb.models.qdt.evaluate import cache_bytes, play, rollout_chunks
 from qdnb.models.qdt.model import QDT, init_params
 from qdnb.models.qdt.train import fit, loss_fn, make_train_step
 from qdnb.nets.transformer import make_optimizer
@@ -375,6 +375,24 @@ def test_cached_play_matches_the_uncached_reference_on_ant_omni():
         play(
             env, dataclasses.replace(model, max_steps=11), params, goals, jax.random.PRNGKey(16), e
         )
+    # the goals played in two groups, one after another: the same episodes
+    grouped = play(env, model, params, goals, jax.random.PRNGKey(16), e, chunks=2)
+    np.testing.assert_allclose(grouped.trajectory[:, :, 0], cached.trajectory[:, :, 0], atol=1e-5)
+    np.testing.assert_allclose(grouped.trajectory, cached.trajectory, atol=1e-3)
+    np.testing.assert_allclose(grouped.descriptor, cached.descriptor, atol=1e-3)
+    np.testing.assert_array_equal(grouped.length, cached.length)
+    with pytest.raises(ValueError, match="chunks must divide the 2 goals, not 3"):
+        play(env, model, params, goals, jax.random.PRNGKey(16), e, chunks=3)
+
+
+def test_rollouts_are_grouped_only_when_their_cache_crowds_the_memory():
+    # the paper QDT on Ant-Omni: 4 layers, width 256, 250 timesteps, 100 goals x 10 episodes
+    model = QDT(action_size=8, max_steps=250, embed_dim=256, num_layers=4, num_heads=4, dropout=0)
+    assert cache_bytes(model, 1000) == 1000 * 2 * 4 * 3 * 250 * 256 * 4  # 6.1 GB
+    assert rollout_chunks(model, 100, 10, 80 * 2**30) == 1  # an H100: all at once
+    assert rollout_chunks(model, 100, 10, 24 * 2**30) == 2  # 24 GiB: 3.1 GB of cache a group
+    assert rollout_chunks(model, 100, 10, 16 * 2**30) == 4  # 16 GiB: 1.5 GB a group
+    assert rollout_chunks(model, 7, 10, 2**20) == 7  # never more groups than goals
 
 
 # ----- the datasets -----

@@ -36,6 +36,7 @@ from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
 from qdnb.core.loops import map_concurrently
 from qdnb.core.names import ENV_LABELS
+from qdnb.core.sharding import device_memory_bytes
 from qdnb.envs.player import Player
 from qdnb.models.qdt.data import (
     NAIVE,
@@ -49,7 +50,7 @@ from qdnb.models.qdt.data import (
     seed_repertoire,
     select_policies,
 )
-from qdnb.models.qdt.evaluate import goal_scores, play
+from qdnb.models.qdt.evaluate import goal_scores, play, rollout_chunks
 from qdnb.models.qdt.model import QDT
 from qdnb.models.qdt.train import fit, make_train_step
 from qdnb.nets.mlp import MLP
@@ -389,7 +390,11 @@ def run_environment(
         cfg.num_heads,
         cfg.dropout,
     )
-    play_goals = jax.jit(lambda params, k: play(env, model, params, goals, k, cfg.eval_episodes))
+    # the goals played in groups when their rollouts' cache would crowd the device's memory
+    chunks = rollout_chunks(model, len(goals), cfg.eval_episodes, device_memory_bytes())
+    play_goals = jax.jit(
+        lambda params, k: play(env, model, params, goals, k, cfg.eval_episodes, chunks=chunks)
+    )
     step = make_train_step(
         model, make_optimizer(cfg.learning_rate)
     )  # one compilation for every dataset

@@ -35,6 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from qdnb.core import sharding
+
 ENV = "QDNB_DRYRUN"
 KEEP_STEPS = 2  # steps a loop runs in a dry run (the first one alone when it is slow)
 SLOW_STEP_S = 2.0  # a first step slower than this is not run again (its time is clear)
@@ -169,7 +171,7 @@ def _memory(compiled: Any) -> dict[str, int]:
 
 
 def host_memory_bytes() -> int:
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return sharding.device_memory_bytes()  # the host's, in a CPU dry run
 
 
 def too_big_here(name: str, jitted: Any, *args: Any, full_steps: int = 1) -> bool:

@@ -55,6 +55,19 @@ def cores() -> int:
         return os.cpu_count() or 1
 
 
+def device_memory_bytes() -> int:
+    """The memory one computation of this process may fill: an accelerator's own
+    (``bytes_limit``), else the host's (the CPU devices share it)."""
+    import jax
+
+    device = jax.local_devices()[0]
+    if device.platform != "cpu":
+        limit = (device.memory_stats() or {}).get("bytes_limit")
+        if limit:
+            return int(limit)
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
 def default_host_devices(num_cores: int | None = None) -> int:
     """One host device per core, at most ``HOST_DEVICE_CAP``."""
     return max(1, min(cores() if num_cores is None else num_cores, HOST_DEVICE_CAP))

@@ -20,8 +20,13 @@ import numpy as np
 from qdnb.core.evaluation import Evaluation
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import tally_evaluation, tally_start, tally_step
-from qdnb.models.qdt.model import QDT
+from qdnb.models.qdt.model import QDT, TOKENS_PER_STEP
 from qdnb.qd.low_spread import spread
+
+# of the device's memory, for one group of rollouts' cache.  XLA's working memory for the
+# rollouts is 1.26 times their cache (compiled for 100 and 200 Ant-Omni rollouts at paper on
+# CPU), and the datasets and models share the memory with it
+CACHE_SHARE = 1 / 8
 
 
 def play(
@@ -32,19 +37,40 @@ def play(
     key: jax.Array,
     num_episodes: int,
     cached: bool = True,
+    chunks: int = 1,
 ) -> Evaluation:
     """Condition the QDT on each goal ``(G, d)`` for ``num_episodes`` episodes from
     different initial states; leaves of the result have shape ``(G, E, ...)``
     (``trajectory`` holds the actions played, ``(G, E, T, A)``).  The fitness is
-    read as ``evaluate_policies`` reads it (``env.fitness_mode``)."""
+    read as ``evaluate_policies`` reads it (``env.fitness_mode``).  ``chunks`` (a
+    divisor of ``G``) plays the goals in that many groups one after another, each with
+    its own cache (``rollout_chunks``): the same episodes from the same initial states,
+    in ``1 / chunks`` of the memory."""
     if model.max_steps < env.episode_length:
         raise ValueError(
             f"the QDT knows {model.max_steps} timesteps, the episodes last {env.episode_length}"
         )
     g = goals.shape[0]
+    if chunks < 1 or g % chunks:
+        raise ValueError(f"chunks must divide the {g} goals, not {chunks}")
     n = g * num_episodes
-    bd = jnp.repeat(goals, num_episodes, axis=0)
+    bd = jnp.repeat(goals, num_episodes, axis=0)  # a goal's episodes side by side
     states = jax.vmap(env.reset)(jax.random.split(key, n))
+    if chunks == 1:
+        ev = _unroll(env, model, params, bd, states, cached)
+    else:  # contiguous groups of whole goals, one lax.map iteration each
+        group = lambda x: x.reshape((chunks, n // chunks) + x.shape[1:])
+        ev = jax.lax.map(
+            lambda a: _unroll(env, model, params, *a, cached),
+            (group(bd), jax.tree.map(group, states)),
+        )
+        ev = jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), ev)
+    return jax.tree.map(lambda x: x.reshape((g, num_episodes) + x.shape[1:]), ev)
+
+
+def _unroll(env: Env, model: QDT, params: Any, bd: jax.Array, states: Any, cached: bool):
+    """The episodes of ``bd``'s rows from ``states``, one ``lax.scan`` over time."""
+    n = bd.shape[0]
     step_env = jax.vmap(env.step)
     horizon = env.episode_length
 
@@ -89,10 +115,27 @@ def play(
         body, (states, tallies, action0, memory), jnp.arange(1, horizon)
     )
     actions = jnp.concatenate([action0[None], actions]).swapaxes(0, 1)
-    return jax.tree.map(
-        lambda x: x.reshape((g, num_episodes) + x.shape[1:]),
-        tally_evaluation(env, tallies, actions),
-    )
+    return tally_evaluation(env, tallies, actions)
+
+
+def cache_bytes(model: QDT, rollouts: int) -> int:
+    """The key-value cache of ``rollouts`` episodes played at once (float32)."""
+    per_rollout = 2 * model.num_layers * TOKENS_PER_STEP * model.max_steps * model.embed_dim
+    return 4 * per_rollout * rollouts
+
+
+def rollout_chunks(model: QDT, num_goals: int, num_episodes: int, memory_bytes: int) -> int:
+    """The fewest groups (a divisor of ``num_goals``) the goals are played in so that
+    one group's cache takes at most ``CACHE_SHARE`` of ``memory_bytes`` (the device's):
+    one group at ``tiny`` and ``small``, and on a GPU at ``paper``; on a 24 GB CPU at
+    ``paper``, the 100 Ant-Omni goals x 10 episodes' 6.1 GB cache goes in 2 groups."""
+    for chunks in range(1, num_goals + 1):
+        if (
+            num_goals % chunks == 0
+            and cache_bytes(model, num_goals // chunks * num_episodes) <= CACHE_SHARE * memory_bytes
+        ):
+            return chunks
+    return num_goals
 
 
 def goal_scores(goals: jax.Array, ev: Evaluation) -> dict[str, np.ndarray]:
