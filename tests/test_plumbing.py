@@ -337,3 +337,17 @@ def test_a_claim_record_says_holds_fails_or_cannot_show():
     assert claims.held([shown, claims.record("x/a", "A beats B", True, "")]) == 1
     with pytest.raises(ValueError, match="holds, fails, cannot show"):
         claims.record("x/a", "A beats B", "maybe", "")
+
+
+def test_environ_sets_variables_inside_and_restores_them_even_on_error(monkeypatch):
+    import os
+
+    from qdnb.book.runner import environ
+
+    monkeypatch.setenv("QDNB_TEST_KEPT", "before")
+    monkeypatch.delenv("QDNB_TEST_NEW", raising=False)
+    with pytest.raises(RuntimeError):
+        with environ(QDNB_TEST_KEPT="inside", QDNB_TEST_NEW="new"):
+            assert os.environ["QDNB_TEST_KEPT"] == "inside" and os.environ["QDNB_TEST_NEW"] == "new"
+            raise RuntimeError("a kernel died")
+    assert os.environ["QDNB_TEST_KEPT"] == "before" and "QDNB_TEST_NEW" not in os.environ

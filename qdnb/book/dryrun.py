@@ -252,19 +252,17 @@ def dry_run_notebook(
     records = where / name / "loops.jsonl"
     records.unlink(missing_ok=True)
     output = where / name / f"{name}.ipynb"
-    before = {k: os.environ.get(k) for k in (ENV, "QDNB_RUNS")}
-    os.environ[ENV] = str(records)
-    os.environ["QDNB_RUNS"] = str(where / "runs")  # never the book's data/runs
     start, error = time.time(), None
-    try:
-        runner.execute(
-            registry.chapter(name).notebook,
-            output,
-            {"scale": scale, "seed": seed},
-            f"dry run of {name}",
-            progress,
-            checkpoints="off",
-        )
+    try:  # the records, and the runs never in the book's data/runs
+        with runner.environ(**{ENV: str(records), "QDNB_RUNS": str(where / "runs")}):
+            runner.execute(
+                registry.chapter(name).notebook,
+                output,
+                {"scale": scale, "seed": seed},
+                f"dry run of {name}",
+                progress,
+                checkpoints="off",
+            )
     except Exception as err:  # a failed cell, or a kernel that died (out of memory, say)
         error = (
             str(err)
@@ -274,12 +272,6 @@ def dry_run_notebook(
                 "the last loop's peak_rss_bytes in its records)"
             )
         )
-    finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     return {
         "records": read_records(records),
         "wall_s": time.time() - start,

@@ -10,6 +10,7 @@ and the execution succeeded, and re-executes otherwise.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -19,6 +20,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Iterator
 
 from qdnb.book import pagecheck, publish, registry, scorecard
 from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
@@ -118,6 +120,22 @@ def _kernel_path(scale: str, deterministic: bool = False) -> str:
     return str(kdir.parent.parent)
 
 
+@contextlib.contextmanager
+def environ(**values: str) -> Iterator[None]:
+    """This process's environment variables set to ``values`` inside (the kernels it
+    starts inherit them), and as they were again after."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def execute(
     source: Path,
     output: Path,
@@ -142,14 +160,9 @@ def execute(
             f"checkpoints must be one of {', '.join(CHECKPOINT_MODES)}, got {checkpoints!r}"
         )
     output.parent.mkdir(parents=True, exist_ok=True)
-    env_before = {k: os.environ.get(k) for k in ("JUPYTER_PATH", "QDNB_CHECKPOINTS")}
-    os.environ["JUPYTER_PATH"] = os.pathsep.join(
-        filter(
-            None,
-            [_kernel_path(parameters["scale"], deterministic), env_before["JUPYTER_PATH"]],
-        )
+    kernel_path = os.pathsep.join(
+        filter(None, [_kernel_path(parameters["scale"], deterministic), os.getenv("JUPYTER_PATH")])
     )
-    os.environ["QDNB_CHECKPOINTS"] = checkpoints
     if progress:
         print(
             f"── {label} ({parameters['scale']}): executing {source.name}",
@@ -157,18 +170,19 @@ def execute(
             flush=True,
         )
     try:
-        pm.execute_notebook(
-            str(source),
-            str(output),
-            parameters=parameters,
-            kernel_name="python3",
-            cwd=str(source.parent),
-            progress_bar=False,
-            log_output=False,
-            stderr_file=sys.stderr if progress else None,
-            # the kernel's own log (its connection notices) is not the chapter's output
-            extra_arguments=["--IPKernelApp.log_level=ERROR"],
-        )
+        with environ(JUPYTER_PATH=kernel_path, QDNB_CHECKPOINTS=checkpoints):
+            pm.execute_notebook(
+                str(source),
+                str(output),
+                parameters=parameters,
+                kernel_name="python3",
+                cwd=str(source.parent),
+                progress_bar=False,
+                log_output=False,
+                stderr_file=sys.stderr if progress else None,
+                # the kernel's own log (its connection notices) is not the chapter's output
+                extra_arguments=["--IPKernelApp.log_level=ERROR"],
+            )
     except pm.PapermillExecutionError as err:
         first_line = (err.source or "").strip().splitlines()[:1]
         raise NotebookFailed(
@@ -177,12 +191,6 @@ def execute(
             f"{err.evalue}\n"
             f"partly executed copy left at {output}"
         ) from None
-    finally:
-        for k, v in env_before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     return output
 
 

@@ -291,7 +291,24 @@ class steps:
             self.seconds.append(time.perf_counter() - self._began)
 
 
-_measured: dict[str, tuple[float, Any]] = {}  # timed(..., same_as=key): seconds, output
+_measured: dict[str, tuple[float, Any]] = {}  # a program's key: its seconds, its output
+
+
+def reused(same_as: str | None, kind: str, name: str, full_steps: int, **fields: Any):
+    """``(True, output)`` when a dry run timed the program ``same_as`` before (``remember``):
+    this use of it is recorded at that time, ``full_steps`` times, and is not run; else
+    ``(False, None)`` (and always outside a dry run)."""
+    if active() is None or same_as is None or same_as not in _measured:
+        return False, None
+    seconds, out = _measured[same_as]
+    record(kind, name, full_steps=int(full_steps), steps_run=0, step_s=[], compile_s=0.0,
+           seconds_per_step=seconds, timed_as=same_as, **fields)  # fmt: skip
+    return True, out
+
+
+def remember(same_as: str, seconds: float, out: Any) -> None:
+    """A dry run timed the program ``same_as``: its later uses are counted, not run."""
+    _measured[same_as] = (seconds, out)
 
 
 def timed(
@@ -306,20 +323,18 @@ def timed(
     ``full_calls`` the full run makes (a one-shot program: a batch of rollouts).  Calls
     sharing a ``same_as`` key run one compiled program on inputs of the same shapes: in a
     dry run the first is timed, and the later ones are counted at its time and return its
-    output, without running (``steps_run`` 0)."""
+    output, without running (``reused``)."""
     if active() is None:
         return fn(*args, **kwargs)
-    if same_as is not None and same_as in _measured:
-        seconds, out = _measured[same_as]
-        record("call", name, full_steps=int(full_calls), steps_run=0, step_s=[], compile_s=0.0,
-               seconds_per_step=seconds, timed_as=same_as)  # fmt: skip
+    done, out = reused(same_as, "call", name, full_calls)
+    if done:
         return out
     began = time.perf_counter()
     out = fn(*args, **kwargs)
     jax.block_until_ready(out)
     seconds = time.perf_counter() - began
     if same_as is not None:
-        _measured[same_as] = (seconds, out)
+        remember(same_as, seconds, out)
     record("call", name, full_steps=int(full_calls), steps_run=1, step_s=[seconds],
            compile_s=0.0, seconds_per_step=seconds)  # fmt: skip
     return out

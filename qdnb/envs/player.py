@@ -3,6 +3,7 @@ compiled simulation (the tests of Chapter 4's repertoires and the QDT's datasets
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import jax
@@ -14,6 +15,8 @@ from qdnb.core.evaluation import Evaluation
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import evaluate_policies
 from qdnb.nets.mlp import MLP
+
+_PLAYERS = itertools.count()  # each player's compiled simulation has its own key
 
 
 class Player:
@@ -27,7 +30,7 @@ class Player:
         self, env: Env, network: MLP, chunk: int, record: bool = False, name: str = "episodes"
     ):
         self.chunk, self.name = chunk, name
-        self._timed: tuple[float, Any] | None = None  # a dry run's rate and chunk output
+        self._program = f"{name} #{next(_PLAYERS)}"  # a dry run times its simulation once
         kept = ("obs", "action", "valid") if record else "next_state_descriptor"
 
         def play(genotypes, keys):
@@ -52,12 +55,10 @@ class Player:
             lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), (genotypes, keys)
         )
         name, count = f"{self.name} ({self.chunk} per chunk)", (n + pad) // self.chunk
-        if self._timed is not None and dryrun.active() is not None:
-            # a dry run timed this compiled simulation on an earlier call: this call's chunks
-            # count at that rate and repeat that output, none is played
-            rate, out = self._timed
-            dryrun.record("loop", name, unit="chunk", full_steps=count, steps_run=0,
-                          step_s=[], compile_s=0.0, seconds_per_step=rate)  # fmt: skip
+        # a dry run that timed this compiled simulation on an earlier call counts this
+        # call's chunks at that rate and repeats that output: none is played
+        done, out = dryrun.reused(self._program, "loop", name, count, unit="chunk")
+        if done:
             outs = [out]
         else:
             chunks = dryrun.steps(name, range(0, n + pad, self.chunk), unit="chunk")
@@ -66,7 +67,7 @@ class Player:
                 outs.append(self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded)))
                 chunks.step_done(outs[-1])
             if chunks.dry:
-                self._timed = (chunks.seconds_per_step, outs[-1])
+                dryrun.remember(self._program, chunks.seconds_per_step, outs[-1])
         # a dry run played the first chunks only: the others repeat them (same shapes)
         outs = [outs[j % len(outs)] for j in range(count)]
         fitness, descriptor, path = (

@@ -269,11 +269,12 @@ def run_seeds(
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
     initial batch.
     """
-    num_seeds = len(keys)
-    if num_seeds > 1 and dryrun.cutting():
+    if len(keys) > 1 and dryrun.cutting():
         return _dry_run_seeds(
-            algorithm, keys, num_iterations, chunk_size, track_bins, target,
-            progress, desc, keep_evaluations, chunk_seconds, on_chunk, stop,
+            algorithm, keys, num_iterations=num_iterations, chunk_size=chunk_size,
+            track_bins=track_bins, target=target, progress=progress, desc=desc,
+            keep_evaluations=keep_evaluations, chunk_seconds=chunk_seconds,
+            on_chunk=on_chunk, stop=stop,
         )  # fmt: skip
     env = algorithm.env
     low, high = env.descriptor_low, env.descriptor_high
@@ -350,7 +351,7 @@ def run_seeds(
     return mine(states), mine(tracks), mine(history)
 
 
-def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, *args: Any) -> Any:
+def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, **kwargs: Any) -> Any:
     """``run_seeds`` in a dry run (``qdnb.core.dryrun``): one seed first.  When a step
     of all the seeds would take under ``ALL_SEEDS_S``, they then run at once, as in the
     full run, and that is what is recorded; otherwise the one seed stands for all of them
@@ -358,13 +359,13 @@ def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, *args: Any) -> Any:
     count once per seed; on the QD-PG page five times one seed's step came to a median
     1.0 times a step of all five, ``bench/results/paper_dryrun_seed_scaling.json``) and
     its results are repeated in every seed's slot."""
-    num_seeds, desc = len(keys), args[5]
+    num_seeds, desc = len(keys), kwargs["desc"]
     with dryrun.held_back() as one_seed, dryrun.repeats(num_seeds, side_by_side=True):
-        out = run_seeds(algorithm, keys[:1], *args)
+        out = run_seeds(algorithm, keys[:1], **kwargs)
     slow = max((r.get("seconds_per_step", 0.0) for r in one_seed), default=0.0)
     if slow * num_seeds <= dryrun.ALL_SEEDS_S:
         with dryrun.uncut():
-            return run_seeds(algorithm, keys, *args)
+            return run_seeds(algorithm, keys, **kwargs)
     dryrun.count(f"{desc or 'loop'}: seeds side by side", num_seeds, 1)
     dryrun.write(one_seed)
     states, tracks, history = out
