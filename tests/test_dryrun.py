@@ -18,7 +18,9 @@ def records(tmp_path, monkeypatch):
     """A dry run in this process; returns a function reading what it recorded."""
     path = tmp_path / "loops.jsonl"
     monkeypatch.setenv(dryrun.ENV, str(path))
-    return lambda: report.read_records(path)
+    read = lambda: report.read_records(path)
+    read.path = path
+    return read
 
 
 def test_outside_a_dry_run_nothing_is_cut_or_recorded(tmp_path, monkeypatch):
@@ -78,6 +80,38 @@ def test_a_python_loop_runs_its_first_iterations_and_counts_are_cut(records):
     assert cut == {**cut, "kind": "cut", "name": "seeds", "full": 3, "kept": 1, "repeats": 3}
     assert call["kind"] == "call" and call["full_steps"] == 20 and call["repeats"] == 3
     assert call["memory_factor"] == 1  # one after another: the memory is not held three times
+
+
+def test_a_slow_first_iteration_is_the_only_one_and_its_time_the_rate(records, monkeypatch):
+    monkeypatch.setattr(dryrun, "SLOW_LOOP_S", 0.0)
+    steps = dryrun.steps("FLT", range(50), full=20000)
+    seen = []
+    for i in steps:
+        seen.append(i)
+        steps.step_done(jnp.ones(3))
+    (loop,) = records()
+    assert seen == [0] and loop["steps_run"] == 1 and loop["compile_s"] == 0.0
+    assert loop["seconds_per_step"] == loop["step_s"][0] == steps.seconds_per_step
+
+
+def test_a_program_compiled_first_then_a_share_of_its_work_timed(records, monkeypatch):
+    """The QDT's evaluation in a dry run: its program compiled ahead of time from shapes
+    (compile seconds apart), then a tenth of the goals played and timed ten times."""
+    program = jax.jit(lambda x: jnp.sin(x) * 2)
+    monkeypatch.delenv(dryrun.ENV)
+    assert dryrun.compiled("rollouts: compilation", program, jnp.ones(3)) is program
+    monkeypatch.setenv(dryrun.ENV, str(records.path))
+    shape = jax.ShapeDtypeStruct((3,), jnp.float32)
+    executable = dryrun.compiled("rollouts: compilation", program, shape)
+    clock = iter([0.0, 0.5])  # the call takes half a second
+    monkeypatch.setattr(dryrun.time, "perf_counter", lambda: next(clock))
+    out = dryrun.timed("rollouts", 4, executable, jnp.ones(3), share=10.0)
+    np.testing.assert_allclose(out, 2 * np.sin(np.ones(3)), rtol=1e-6)
+    compile_rec, call = records()
+    assert compile_rec["kind"] == "compile" and compile_rec["full_steps"] == 0
+    assert compile_rec["compile_s"] >= 0 and "xla_temp_bytes" in compile_rec
+    assert call["seconds_per_step"] == pytest.approx(5.0) and call["share"] == 10.0
+    assert report.project(call)["cpu_hours"] == pytest.approx(4 * 5.0 / 3600)
 
 
 def test_calls_of_one_program_are_timed_once(records):
@@ -328,7 +362,8 @@ def test_the_es_ant_generations_are_cut_only_in_a_dry_run(tmp_path, monkeypatch)
     assert tasks.antmaze.num_actors == 10_000 and share == 1
     monkeypatch.setenv(dryrun.ENV, str(tmp_path / "loops.jsonl"))
     cut, share = es.dry_run_tasks(cfg, "antmaze")
-    assert cut.antmaze.num_actors == es.DRY_RUN_ANT_PERTURBATIONS and share == 20
+    kept = es.DRY_RUN_ANT_PERTURBATIONS
+    assert cut.antmaze.num_actors == kept and share == 10_000 / kept
     assert generations(cut.antmaze) == generations(tasks.antmaze) == 1000
     assert es.dry_run_tasks(cfg, "pointmaze")[0].pointmaze.num_actors == 10_000
 

@@ -51,7 +51,7 @@ from qdnb.models.qdt.data import (
     select_policies,
 )
 from qdnb.models.qdt.evaluate import goal_scores, play, rollout_chunks
-from qdnb.models.qdt.model import QDT
+from qdnb.models.qdt.model import QDT, init_params
 from qdnb.models.qdt.train import fit, make_train_step
 from qdnb.nets.mlp import MLP
 from qdnb.nets.transformer import make_optimizer
@@ -360,6 +360,15 @@ def num_seeds_of(repertoires: dict[str, Any]) -> int:
     return min(int(np.shape(r["fitnesses"])[0]) for r in repertoires.values())
 
 
+DRY_RUN_GOALS = 10  # at most, of a QDT evaluation's goals: 100 of the 1,000 paper rollouts
+
+
+def goals_in_a_dry_run(num_goals: int) -> int:
+    """The goals a dry run plays: the largest divisor of ``num_goals`` not above
+    ``DRY_RUN_GOALS`` (its scores are repeated for the others)."""
+    return max(d for d in range(1, DRY_RUN_GOALS + 1) if num_goals % d == 0)
+
+
 def run_environment(
     cfg: QDTConfig,
     repro_cfg: ReproducibilityConfig,
@@ -390,11 +399,23 @@ def run_environment(
         cfg.num_heads,
         cfg.dropout,
     )
-    # the goals played in groups when their rollouts' cache would crowd the device's memory
-    chunks = rollout_chunks(model, len(goals), cfg.eval_episodes, device_memory_bytes())
-    play_goals = jax.jit(
-        lambda params, k: play(env, model, params, goals, k, cfg.eval_episodes, chunks=chunks)
+    # a dry run plays some of the goals, each independent of the others, and counts its
+    # time for all of them (qdnb.core.dryrun)
+    played = dryrun.count(
+        f"{env_name} QDT evaluation goals", len(goals), goals_in_a_dry_run(len(goals))
     )
+    # the goals played in groups when their rollouts' cache would crowd the device's memory
+    chunks = rollout_chunks(model, played, cfg.eval_episodes, device_memory_bytes())
+    play_goals = jax.jit(
+        lambda params, k: play(
+            env, model, params, goals[:played], k, cfg.eval_episodes, chunks=chunks
+        )
+    )
+    shapes = jax.eval_shape(  # (a dry run compiles it before timing it)
+        lambda k: (init_params(model, k, env.descriptor_size, env.observation_size), k),
+        k_goals,
+    )
+    play_goals = dryrun.compiled(f"{env_name} QDT rollouts: compilation", play_goals, *shapes)
     step = make_train_step(
         model, make_optimizer(cfg.learning_rate)
     )  # one compilation for every dataset
@@ -407,7 +428,8 @@ def run_environment(
             return untrained_run(cfg, len(goals))
 
         def evaluate(params, epoch):
-            s = goal_scores(goals, play_goals(params, k_eval))
+            s = goal_scores(goals[:played], play_goals(params, k_eval))
+            s = {k: np.tile(v, len(goals) // played) for k, v in s.items()}  # (a dry run's)
             return {
                 "avg_distance": float(s["distance"].mean()),
                 "avg_spread": float(s["spread"].mean()),
@@ -431,6 +453,7 @@ def run_environment(
             desc=desc,
             program=f"{env_name} QDT rollouts",
             full_size=full_size,
+            evaluation_share=len(goals) / played,
         )
         best = next(e for e in res.evaluations if e["epoch"] == res.best_epoch)
         return {

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.core import claims
+from qdnb.core import claims, dryrun
 from qdnb.core.evaluation import Evaluation
 from qdnb.core.loops import scan_in_chunks
 from qdnb.models.lenia import flow_lenia as fl
@@ -396,7 +396,9 @@ def evaluate(
         "flt_teacher_forced": [],
     }
     truth_kept, flt_kept, drifts = [], [], []
-    for i, first in enumerate(range(0, episodes, batch)):  # ``first``: not the timer's ``start``
+    # a dry run plays the first batches (qdnb.core.dryrun); the others repeat their scores
+    batches = dryrun.steps("held-out episodes", range(0, episodes, batch), unit="batch")
+    for i, first in enumerate(batches):  # ``first``: not the timer's ``start``
         n = min(batch, episodes - first)
         truth = fl.frames(fl.simulate_system(system, jax.random.fold_in(key, i), world, batch))[:n]
         drifts.append(np.asarray(fl.mass_drift(truth[..., :1])))
@@ -411,15 +413,18 @@ def evaluate(
         if sum(len(x) for x in truth_kept) < 3:  # keep the first three episodes for the figures
             truth_kept.append(np.asarray(truth[:3]))
             flt_kept.append(np.asarray(pred[:3]))
+        batches.step_done(parts["flt"][-1], parts["flt_teacher_forced"][-1])
+    full = -(-episodes // batch)  # every batch's, or the dry run's first ones repeated
+    every = lambda xs: np.concatenate([xs[j % len(xs)] for j in range(full)])[:episodes]
     errors = {
-        name: {q: np.concatenate([np.asarray(p[q]) for p in ps]) for q in ("A", "frame")}
+        name: {q: every([np.asarray(p[q]) for p in ps]) for q in ("A", "frame")}
         for name, ps in parts.items()
     }
     return HeldOut(
         errors,
         np.concatenate(truth_kept)[:3],
         np.concatenate(flt_kept)[:3],
-        np.concatenate(drifts),
+        every(drifts),
         time.perf_counter() - start,
     )
 

@@ -40,6 +40,10 @@ from qdnb.core import sharding
 ENV = "QDNB_DRYRUN"
 KEEP_STEPS = 2  # steps a loop runs in a dry run (the first one alone when it is slow)
 SLOW_STEP_S = 2.0  # a first step slower than this is not run again (its time is clear)
+# a Python loop's first iteration slower than this is its only one: its time, compilation
+# included, is the rate (the FLT's paper step: 139 s on 2 CPU cores, 58 s on an H100 of
+# which 57 s compiling, where a second step is run)
+SLOW_LOOP_S = 100.0
 ALL_SEEDS_S = 5.0  # seeds side by side all run when a step of them all would be quicker
 
 _lock = threading.Lock()
@@ -76,7 +80,8 @@ def record(kind: str, name: str, **fields: Any) -> None:
         "memory_factor": memory_factor(),
         **fields,
     }
-    entry.update(peak_rss_bytes=peak_rss_bytes(), devices=jax.device_count())
+    # when (the gaps between records are the time no loop accounts for)
+    entry.update(peak_rss_bytes=peak_rss_bytes(), devices=jax.device_count(), at=time.time())
     held = getattr(_repeat, "held", None)
     if held is not None:  # inside ``held_back``: written later, or never
         held.append(entry)
@@ -174,6 +179,20 @@ def host_memory_bytes() -> int:
     return sharding.device_memory_bytes()  # the host's, in a CPU dry run
 
 
+def compiled(name: str, jitted: Any, *args: Any) -> Any:
+    """``jitted`` itself outside a dry run; in one, ``jitted`` compiled ahead of time for
+    the shapes of ``args`` (``jax.ShapeDtypeStruct`` leaves will do), its compile seconds
+    and memory recorded under ``name`` (a loop of no steps): the calls then timed
+    (``timed``) are the program's run alone."""
+    if active() is None:
+        return jitted
+    began = time.perf_counter()
+    executable = jitted.lower(*args).compile()
+    record("compile", name, full_steps=0, steps_run=0, step_s=[], seconds_per_step=0.0,
+           compile_s=time.perf_counter() - began, **_memory(executable))  # fmt: skip
+    return executable
+
+
 def too_big_here(name: str, jitted: Any, *args: Any, full_steps: int = 1) -> bool:
     """In a dry run: compile ``jitted`` for ``args`` and, when XLA's working memory for
     it would not fit this machine's memory, record the loop as not run here (with that
@@ -267,6 +286,8 @@ class steps:
         for n, i in enumerate(self.indices):
             if n >= self.keep:  # (the first iteration compiles: the second is the rate)
                 break
+            if n == 1 and self.seconds and self.seconds[0] > SLOW_LOOP_S:
+                break  # a slow first iteration: its time stands for every one
             self._began = time.perf_counter()
             yield i
         first = self.seconds[0] if self.seconds else 0.0
@@ -317,13 +338,16 @@ def timed(
     fn: Callable[..., Any],
     *args: Any,
     same_as: str | None = None,
+    share: float = 1.0,
     **kwargs: Any,
 ) -> Any:
     """``fn(*args, **kwargs)``; in a dry run its wall time is recorded as one call of
-    ``full_calls`` the full run makes (a one-shot program: a batch of rollouts).  Calls
-    sharing a ``same_as`` key run one compiled program on inputs of the same shapes: in a
-    dry run the first is timed, and the later ones are counted at its time and return its
-    output, without running (``reused``)."""
+    ``full_calls`` the full run makes (a one-shot program: a batch of rollouts), times
+    ``share`` where the dry run's ``fn`` does that fraction of a full call's work in
+    independent parts (some of the goals).  Calls sharing a ``same_as`` key run one
+    compiled program on inputs of the same shapes: in a dry run the first is timed, and
+    the later ones are counted at its time and return its output, without running
+    (``reused``)."""
     if active() is None:
         return fn(*args, **kwargs)
     done, out = reused(same_as, "call", name, full_calls)
@@ -332,9 +356,9 @@ def timed(
     began = time.perf_counter()
     out = fn(*args, **kwargs)
     jax.block_until_ready(out)
-    seconds = time.perf_counter() - began
+    seconds = (time.perf_counter() - began) * share
     if same_as is not None:
         remember(same_as, seconds, out)
     record("call", name, full_steps=int(full_calls), steps_run=1, step_s=[seconds],
-           compile_s=0.0, seconds_per_step=seconds)  # fmt: skip
+           compile_s=0.0, seconds_per_step=seconds, share=share)  # fmt: skip
     return out

@@ -86,13 +86,16 @@ def fit(
     desc: str = "QDT",
     program: str | None = None,
     full_size: int | None = None,
+    evaluation_share: float = 1.0,
 ) -> TrainResult:
     """Train on ``data`` for ``epochs`` epochs and call ``evaluate(params, epoch)``
     after every ``eval_every`` epochs; ``evaluate`` returns scores with an
     ``avg_distance`` (lower is better).  ``program`` names the compiled evaluation
     that fits share (a dry run times it once: ``qdnb.core.dryrun.timed``); ``full_size``
     the dataset's size in the full run, where a dry run recorded fewer episodes (its
-    training's length is counted at that size).
+    training's length is counted at that size); ``evaluation_share`` the full
+    evaluation's work over what a dry run's ``evaluate`` does (its time is counted that
+    many times).
 
     An epoch is a pass over a fresh permutation in minibatches of ``batch_size``
     trajectories, the last partial one dropped; a dataset smaller than a batch
@@ -141,7 +144,7 @@ def fit(
             full_steps=epochs * steps_per_epoch,
         ):  # fmt: skip
             scores = dryrun.timed(f"{desc} rollouts", epochs // eval_every, evaluate, params, 0,
-                                  same_as=program)  # fmt: skip
+                                  same_as=program, share=evaluation_share)  # fmt: skip
             result.evaluations.append({"epoch": 0, **scores})
             result.losses.append(float("nan"))
             return result
@@ -163,8 +166,9 @@ def fit(
         result.losses.append(float(jnp.mean(jnp.stack(losses))))
         if epoch % eval_every == 0 or dry:
             scores = dryrun.timed(
-                f"{desc} rollouts", epochs // eval_every, evaluate, params, epoch, same_as=program
-            )
+                f"{desc} rollouts", epochs // eval_every, evaluate, params, epoch,
+                same_as=program, share=evaluation_share,
+            )  # fmt: skip
             result.evaluations.append({"epoch": epoch, **scores})
             if scores["avg_distance"] < best:
                 best, result.best_epoch, result.params = scores["avg_distance"], epoch, params
