@@ -169,7 +169,9 @@ def test_cheap_seeds_side_by_side_are_all_run(records):
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     states, _, history = run_seeds(small_map_elites(), keys, 30, 10, progress=False, desc="ME")
     assert history["max_fitness"].shape[:2] == (3, 31)
-    (loop,) = records()
+    first, loop = records()  # the start (compiled and run once), then the loop
+    assert first["kind"] == "call" and first["name"] == "ME: start"
+    assert first["full_steps"] == 1 and first["repeats"] == 1
     assert loop["name"] == "ME" and loop["repeats"] == 1 and loop["memory_factor"] == 1
     assert loop["full_steps"] == 31 and loop["steps_run"] == 2
 
@@ -187,7 +189,8 @@ def test_slow_seeds_side_by_side_run_one_and_count_for_all(records, monkeypatch)
     assert history["max_fitness"].shape[:2] == (3, 31)
     assert jax.tree.leaves(states)[0].shape[0] == 3
     np.testing.assert_array_equal(history["max_fitness"][0], history["max_fitness"][2])
-    cut, loop = records()
+    cut, first, loop = records()
+    assert first["name"] == "ME: start" and first["repeats"] == 3
     assert cut["name"] == "ME: seeds side by side" and (cut["full"], cut["kept"]) == (3, 1)
     assert loop["name"] == "ME" and loop["repeats"] == 3 and loop["memory_factor"] == 3
     assert loop["full_steps"] == 31 and loop["steps_run"] == 1  # a slow first step runs alone

@@ -311,7 +311,8 @@ def run_seeds(
     mine = lambda tree: tree if slots == num_seeds else jax.tree.map(lambda x: x[:num_seeds], tree)
     if getattr(algorithm, "start", None) is not None:
         # the initial evaluation is the first step: one compiled program for the whole loop
-        carry = jax.jit(split(lambda k: (algorithm.start(k), new_track())))(keys)
+        start = jax.jit(split(lambda k: (algorithm.start(k), new_track())))
+        carry = dryrun.timed(f"{desc or 'loop'}: start", 1, start, keys)
         (states, tracks), history = scan_in_chunks(
             split(step),
             carry,
@@ -331,7 +332,8 @@ def run_seeds(
         track, out = record(state, new_track(), ev)
         return (state, track), out
 
-    carry, first = jax.jit(split(init))(keys)
+    # (a dry run times it: compiled and run once, as in the full run)
+    carry, first = dryrun.timed(f"{desc or 'loop'}: initial batch", 1, jax.jit(split(init)), keys)
     if stop is not None and stop(jax.tree.map(lambda f: f[None], first)):
         stop = lambda _: True  # the initial batch already met it: stop after one chunk
     (states, tracks), history = scan_in_chunks(
