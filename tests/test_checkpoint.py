@@ -72,7 +72,7 @@ def test_an_interrupted_loop_resumes_bit_for_bit(tmp_path, steps, chunk, capsys)
     assert checkpoint.resumed() == [{"loop": "walk", "step": 2 * chunk}]  # for summary.json
     assert f"{2 * chunk}/{steps}" in err  # the progress bar starts where the run stopped
     kept = sorted(p.name for p in next(tmp_path.iterdir()).iterdir() if p.name.isdigit())
-    assert len(kept) == 2  # the last two
+    assert kept == [str(steps)]  # the finished loop's final state only
     assert checkpoint.cost()["saves"] >= 1 and checkpoint.cost()["seconds"] > 0
 
 
@@ -83,6 +83,8 @@ def test_a_finished_loop_is_restored_without_running(tmp_path):
     calls = []
     again = scan_in_chunks(walk, START, 6, 2, "walk", progress=False, on_chunk=calls.append)
     assert_same(again, first) and calls == []
+    # a finished loop keeps its final state only, where a running one keeps two
+    assert sorted(d.name for d in next(tmp_path.iterdir()).iterdir() if d.name.isdigit()) == ["6"]
 
 
 def test_a_loop_that_stopped_early_resumes_stopped(tmp_path):

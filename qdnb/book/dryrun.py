@@ -35,7 +35,9 @@ from qdnb.core.io import atomic_write_json
 
 GPU_MEMORY_BYTES = 80e9  # one H100
 GPU_MACHINE_DISK_BYTES = 64 * 2**30  # the disk of the GPU machines lent to this project
-CHECKPOINTS_KEPT = 2  # CheckpointPolicy.keep: a loop's checkpoint folder holds two states
+# CheckpointPolicy.keep: a running loop's checkpoint folder holds two states, a finished
+# loop's its final one (LoopCheckpoints.save(final=True))
+CHECKPOINTS_KEPT = 2
 
 
 def report_path(scale: str) -> Path:
@@ -214,7 +216,9 @@ def summarise(
             loops.append({**rec, **project(rec, matching_rate(notebook, rec, rates))})
     gpu = [loop["gpu_hours"] for loop in loops]
     cpu_hours = sum(loop["cpu_hours"] or 0.0 for loop in loops)
-    checkpoints = CHECKPOINTS_KEPT * sum(loop["checkpoint_bytes"] for loop in loops)
+    # at most: every loop's final state, and the running one's earlier state beside it
+    sizes = [loop["checkpoint_bytes"] for loop in loops]
+    checkpoints = sum(sizes) + (CHECKPOINTS_KEPT - 1) * max(sizes, default=0)
     peak_device = max([loop["device_bytes"] for loop in loops] or [0])
     dataset_bytes = sum(d["full_bytes"] for d in data)
     totals = {

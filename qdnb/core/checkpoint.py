@@ -239,9 +239,12 @@ class LoopCheckpoints:
             or time.monotonic() - self.last_save >= self.policy.every_seconds
         )
 
-    def save(self, step: int, state: Any, extra: Any = None) -> None:
+    def save(self, step: int, state: Any, extra: Any = None, final: bool = False) -> None:
         """Save ``state`` (a pytree of arrays) after ``step`` steps, with ``extra``
-        (Python values and numpy arrays: records kept on the host) beside it."""
+        (Python values and numpy arrays: records kept on the host) beside it.  A
+        ``final`` save (the loop's end) keeps only itself: a finished loop needs no
+        step to fall back on, and at paper Chapter 4's checkpoints would otherwise take
+        52 of the GPU machine's 64 GiB of disk (``bench/results/paper_dryrun.json``)."""
         ocp = self._ocp
         start = time.perf_counter()
         meta = {**self.meta, "step": step, "extra": to_json(extra)}
@@ -253,6 +256,10 @@ class LoopCheckpoints:
             force=True,
         )
         self.manager.wait_until_finished()
+        if final:
+            for earlier in self.manager.all_steps():
+                if earlier != step:
+                    self.manager.delete(earlier)
         self.last_save = time.monotonic()
         with _lock:
             _cost["saves"] += 1

@@ -130,7 +130,7 @@ def scan_in_chunks(
             if saver is not None and saver.due(chunks, last=done == num_steps or stopped):
                 so_far = jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)
                 outputs = [so_far]
-                saver.save(done, {"carry": carry, "outputs": so_far})
+                saver.save(done, {"carry": carry, "outputs": so_far}, final=done == num_steps)
             if on_chunk is not None:
                 on_chunk(done)
     return carry, jax.tree.map(lambda *xs: jnp.concatenate(xs), *outputs)

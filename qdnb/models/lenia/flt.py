@@ -404,7 +404,7 @@ def train(
             break  # float(loss) waits for the step, so the clock counts finished steps
         if saver is not None and saver.due(i + 1 - start_step, last=i + 1 == cfg.train_steps):
             state = (params, opt_state, frame_sum, jnp.stack(losses), jnp.stack(drifts))
-            saver.save(i + 1, state)
+            saver.save(i + 1, state, final=i + 1 == cfg.train_steps)
     bar.close()
     seen = len(losses) * cfg.batch_size
     return TrainResult(

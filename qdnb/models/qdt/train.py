@@ -180,5 +180,6 @@ def fit(
                 "losses": result.losses,
                 "evaluations": result.evaluations,
             }
-            saver.save(epoch, (params, opt_state, k_train, result.params), extra)
+            state = (params, opt_state, k_train, result.params)
+            saver.save(epoch, state, extra, final=epoch == epochs)
     return result
