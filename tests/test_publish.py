@@ -20,7 +20,7 @@ def runs(tmp_path, monkeypatch):
     return tmp_path / "runs"
 
 
-def fake_run(scale="tiny", name="ch2_primer"):
+def fake_run(scale="tiny", name="ch2_primer", results=None):
     """A finished run as the runner leaves it, with a parameter file and checkpoints."""
     d = paths.run_dir(scale, name)
     nb = nbformat.v4.new_notebook()
@@ -39,7 +39,7 @@ def fake_run(scale="tiny", name="ch2_primer"):
         "xla_flags": "",
         "wall_time_s": 141.0,
         "config_hash": "abc",
-        "results": {"headline": "it ran"},
+        "results": results or {"headline": "it ran"},
     }
     (d / "summary.json").write_text(json.dumps(summary))
     (d / "execution.json").write_text(json.dumps({"status": "ok", "fingerprint": "f"}))
@@ -174,3 +174,16 @@ def test_the_paper_page_lists_published_runs_with_where_and_when(runs):
     archive.write_bytes(archive.read_bytes()[:100])  # a broken archive is named, not hidden
     (row,) = paper_page.published_rows("tiny")
     assert row["ran on"].startswith("unreadable")
+
+
+def test_a_published_run_gives_its_loops_their_measured_time(runs):
+    from qdnb.book import dryrun
+
+    fake_run(results={"headline": "it ran", "ME": {"wall_time_s": 36.0}})
+    publish.publish("tiny", "ch2_primer")
+    (rate,) = dryrun.published_rates("tiny")
+    assert rate["notebook"] == "ch2_primer" and rate["match"] == "ME" and "H100" in rate["what"]
+    loop = {"kind": "scan", "name": "ME", "full_steps": 1000, "seconds_per_step": 1.0}
+    assert dryrun.matching_rate("ch2_primer", loop, [rate]) is rate
+    assert dryrun.project(loop, rate)["gpu_hours"] == pytest.approx(0.01)  # 36 s, whole
+    assert dryrun.matching_rate("ch2_primer", {**loop, "name": "NS"}, [rate]) is None

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from qdnb.book import provenance, registry, runner
+from qdnb.book import provenance, publish, registry, runner
 from qdnb.book.paper_page import (  # noqa: F401 (the report's readers, beside its writer)
     chapter_rows,
     loop_rows,
@@ -114,6 +114,7 @@ def gpu_rates(bench_dir: Path | None = None) -> list[dict[str, Any]]:
                             "what": f"the same loop's dry run on {nb['ran_on']['device']}",
                         }
                     )
+    rates += published_rates()
     qdt = load("qdt_h100_paper.json")
     if qdt:
         rates.append(
@@ -136,6 +137,33 @@ def gpu_rates(bench_dir: Path | None = None) -> list[dict[str, Any]]:
                 "what": "the cached rollouts of every goal",
             }
         )
+    return rates
+
+
+def published_rates(scale: str = "paper", where: Path | None = None) -> list[dict[str, Any]]:
+    """A run published at ``scale`` (``data/published``) ran its loops in full
+    somewhere: each method's own wall time in its ``summary.json`` stands for that loop."""
+    rates = []
+    for archive in sorted((where or publish.PUBLISHED / scale).glob(f"*/*-{scale}.tar.gz")):
+        try:
+            manifest, files = publish.read_archive(archive)
+        except publish.ArchiveError:
+            continue  # the paper page names it as unreadable
+        summary = json.loads(files.get("summary.json", b"{}"))
+        for method, result in summary.get("results", {}).items():
+            if isinstance(result, dict) and "wall_time_s" in result:
+                rates.append(
+                    {
+                        "notebook": manifest["notebook"],
+                        "match": method,
+                        "exact": True,
+                        "per": "run",
+                        "seconds": result["wall_time_s"],
+                        "source": archive.name,
+                        "what": f"the whole loop, run in full on {summary.get('device')} "
+                        f"({manifest['published_at'][:10]})",
+                    }
+                )
     return rates
 
 
@@ -178,7 +206,9 @@ def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[st
     per_step = loop.get("seconds_per_step")  # None: not run on this machine ("skipped")
     cpu_s = None if per_step is None else repeats * (loop.get("compile_s", 0.0) + steps * per_step)
     gpu_h = None
-    if rate is not None:
+    if rate is not None and rate["per"] == "run":  # measured whole: compilation included
+        gpu_h = rate["seconds"] / 3600
+    elif rate is not None:
         if rate["per"] == "gpu_step":  # a step of all the seeds at once: repeat the rest only
             units = repeats / loop.get("memory_factor", 1.0) * steps
         else:
