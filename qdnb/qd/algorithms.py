@@ -364,7 +364,9 @@ def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, **kwargs: Any) -> A
     num_seeds, desc = len(keys), kwargs["desc"]
     with dryrun.held_back() as one_seed, dryrun.repeats(num_seeds, side_by_side=True):
         out = run_seeds(algorithm, keys[:1], **kwargs)
-    slow = max((r.get("seconds_per_step", 0.0) for r in one_seed), default=0.0)
+    # the loop's steps (the start, compiled and run once, is not a step)
+    steps = [r["seconds_per_step"] for r in one_seed if r["kind"] in ("scan", "loop")]
+    slow = max(steps, default=0.0)
     if slow * num_seeds <= dryrun.ALL_SEEDS_S:
         with dryrun.uncut():
             return run_seeds(algorithm, keys, **kwargs)
