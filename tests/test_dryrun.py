@@ -197,7 +197,7 @@ def test_slow_seeds_side_by_side_run_one_and_count_for_all(records, monkeypatch)
     assert cut["name"] == "ME: seeds side by side" and (cut["full"], cut["kept"]) == (3, 1)
     assert loop["name"] == "ME" and loop["repeats"] == 3 and loop["memory_factor"] == 3
     assert loop["full_steps"] == 31 and loop["steps_run"] == 1  # a slow first step runs alone
-    one = report.project({**loop, "memory_factor": 1})
+    one = report.project({**loop, "memory_factor": 1, "state_factor": 1})
     assert report.project(loop)["device_bytes"] == pytest.approx(3 * one["device_bytes"])
 
 
@@ -346,8 +346,11 @@ def test_the_primer_dry_run_at_tiny_times_every_loop(tmp_path):
     got = report.dry_run(["ch2_primer"], "tiny", progress=False, out=out, work=tmp_path)
     nb = got["notebooks"]["ch2_primer"]
     assert nb["status"] == "ok", nb["error"]
-    assert [loop["name"] for loop in nb["loops"]] == ["GA", "NS", "ME"]
-    for loop in nb["loops"]:
+    names = [loop["name"] for loop in nb["loops"]]  # each loop's start, then the loop
+    assert names == ["GA: initial batch", "GA", "NS: initial batch", "NS", "ME: start", "ME"]
+    starts = [loop for loop in nb["loops"] if loop["kind"] == "call"]
+    assert all(s["full_steps"] == 1 and s["seconds_per_step"] > 0 for s in starts)
+    for loop in [loop for loop in nb["loops"] if loop["kind"] == "scan"]:
         assert loop["steps_run"] == 2 and loop["full_steps"] in (40, 41)
         assert loop["compile_s"] > 0 and loop["seconds_per_step"] > 0
         assert loop["cpu_hours"] > 0 and loop["device_bytes"] > loop["carry_bytes"] > 0
@@ -410,3 +413,19 @@ def test_a_dry_run_stopped_from_outside_is_reported_cut_off_with_its_loops(tmp_p
     assert report.chapter_rows(got)[0]["dry run"] == "CUT OFF"
     with pytest.raises(ValueError, match="not paper"):
         report.resummarise("paper", out, work=tmp_path)
+
+
+def test_copies_sharing_their_state_count_only_their_working_memory_again(records):
+    """An ES generation's perturbations, cut 100-fold: their working memory is counted
+    100 times, the central parameters they share (the carry) once."""
+    step = lambda c: (c + 1.0, c.sum())
+    with dryrun.repeats(100, side_by_side=True, shared_state=True):
+        scan_in_chunks(step, jnp.ones(1000), 4, 2, progress=False, desc="ES")
+    with dryrun.repeats(100, side_by_side=True):
+        scan_in_chunks(step, jnp.ones(1000), 4, 2, progress=False, desc="seeds")
+    es, seeds = records()
+    assert es["state_factor"] == 1 and es["memory_factor"] == es["repeats"] == 100
+    assert seeds["state_factor"] == seeds["memory_factor"] == 100
+    shared, copied = report.project(es), report.project(seeds)
+    assert shared["checkpoint_bytes"] == pytest.approx(copied["checkpoint_bytes"] / 100)
+    assert shared["cpu_hours"] == pytest.approx(copied["cpu_hours"], rel=1.0)  # timed apart

@@ -55,11 +55,13 @@ def resolve(names: list[str]) -> list[str]:
 # --- GPU rates measured on an H100 (bench/results/*h100*.json) -----------------------------
 
 
-def gpu_rates(bench_dir: Path | None = None) -> list[dict[str, Any]]:
+def gpu_rates(bench_dir: Path | None = None, published: Path | None = None) -> list[dict[str, Any]]:
     """The rates measured on one GPU that a loop can be projected with: which
     notebook's loops (a name fragment), what is counted (``env_step`` or ``step``), how
     many per second, and where it was measured.  A loop no rate matches has no GPU
-    projection (``None``), rather than a guess."""
+    projection (``None``), rather than a guess.  With the book's own ``bench/results``
+    (the default), or with ``published`` (a folder of runs published at paper), the
+    loops of published runs count their measured time (``published_rates``)."""
     bench_dir = bench_dir or paths.ROOT / "bench" / "results"
     rates: list[dict[str, Any]] = []
 
@@ -114,7 +116,8 @@ def gpu_rates(bench_dir: Path | None = None) -> list[dict[str, Any]]:
                             "what": f"the same loop's dry run on {nb['ran_on']['device']}",
                         }
                     )
-    rates += published_rates()
+    if bench_dir == paths.ROOT / "bench" / "results" or published is not None:
+        rates += published_rates(where=published)  # the book's own, or those named
     qdt = load("qdt_h100_paper.json")
     if qdt:
         rates.append(
@@ -217,7 +220,8 @@ def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[st
             )
         gpu_h = units / rate["rate"] / 3600
     scale = loop.get("memory_factor", 1.0)  # seeds side by side, one of them run
-    carry, outputs = scale * loop.get("carry_bytes", 0), scale * loop.get("outputs_bytes", 0)
+    state = loop.get("state_factor", scale)  # (an ES generation's perturbations share it)
+    carry, outputs = state * loop.get("carry_bytes", 0), state * loop.get("outputs_bytes", 0)
     device = carry + outputs + scale * loop.get("xla_temp_bytes", 0) * loop.get("devices", 1)
     if loop["kind"] == "skipped":  # XLA's CPU plan of a step this machine cannot run: not a GPU's
         device = 0

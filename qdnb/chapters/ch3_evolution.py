@@ -137,7 +137,7 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
     evolution = {}
     for i, env_name in enumerate(("pointmaze", "antmaze")):
         tasks, share = dry_run_tasks(cfg, env_name)
-        with dryrun.repeats(share, side_by_side=True):
+        with dryrun.repeats(share, side_by_side=True, shared_state=True):
             evolution[env_name] = run_environment(
                 tasks,
                 env_name,
@@ -149,10 +149,11 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
     return Result(qdpg, status, evolution)
 
 
-# of the 10,000 a paper generation evaluates on Ant-Maze: 200 of them take about 60 s a
-# generation on two CPU cores (500 took 134-161 s, the three methods 7 of the dry run's
-# 58 minutes), enough side by side to keep the cores busy
-DRY_RUN_ANT_PERTURBATIONS = 200
+# of the 10,000 a paper generation evaluates on Ant-Maze, in a dry run on a CPU: 100 of them
+# take about 30 s a generation on two CPU cores (500 took 134-161 s, 200 took 55-65 s; the
+# per-policy time grows by a tenth from 500 to 200), enough side by side to keep the cores
+# busy.  A GPU evaluates all 10,000: its rate at a tenth of that batch would not tell.
+DRY_RUN_ANT_PERTURBATIONS = 100
 
 
 def dry_run_tasks(cfg: EvolutionConfig, env_name: str) -> tuple[QDPGConfig, float]:
@@ -161,9 +162,10 @@ def dry_run_tasks(cfg: EvolutionConfig, env_name: str) -> tuple[QDPGConfig, floa
     takes about 20 minutes on two CPU cores, three methods an hour: there its
     perturbations, independent episodes side by side, are cut to
     ``DRY_RUN_ANT_PERTURBATIONS`` (the generations kept as many), and each loop's time
-    and memory count ``10,000 / 200`` times (the factor returned)."""
+    and memory count ``10,000 / 100`` times (the factor returned).  On a GPU nothing is
+    cut."""
     tasks = cfg.es_tasks(env_name)
-    if env_name == "pointmaze":
+    if env_name == "pointmaze" or jax.default_backend() != "cpu":
         return tasks, 1.0
     full = cfg.ant_perturbations
     kept = dryrun.count(

@@ -78,6 +78,7 @@ def record(kind: str, name: str, **fields: Any) -> None:
         "name": name,
         "repeats": repeat_factor(),
         "memory_factor": memory_factor(),
+        "state_factor": state_factor(),
         **fields,
     }
     # when (the gaps between records are the time no loop accounts for)
@@ -107,19 +108,28 @@ def memory_factor() -> float:
     return getattr(_repeat, "memory", 1.0)
 
 
+def state_factor() -> float:
+    return getattr(_repeat, "state", 1.0)
+
+
 @contextlib.contextmanager
-def repeats(factor: float, side_by_side: bool = False) -> Iterator[None]:
+def repeats(
+    factor: float, side_by_side: bool = False, shared_state: bool = False
+) -> Iterator[None]:
     """Loops recorded inside stand for ``factor`` runs each in the full run, after a
     ``count`` cut: of work run again one after another (seeds in a Python loop), or,
     ``side_by_side``, of independent copies the full run holds at once (seeds under
-    ``vmap``), whose memory then counts ``factor`` times too."""
-    before = repeat_factor(), memory_factor()
+    ``vmap``), whose memory then counts ``factor`` times too: their working memory, and
+    their state and outputs unless they share them (``shared_state``: the perturbations
+    of one ES generation, around one set of central parameters)."""
+    before = repeat_factor(), memory_factor(), state_factor()
     _repeat.factor = before[0] * factor
     _repeat.memory = before[1] * (factor if side_by_side else 1.0)
+    _repeat.state = before[2] * (factor if side_by_side and not shared_state else 1.0)
     try:
         yield
     finally:
-        _repeat.factor, _repeat.memory = before
+        _repeat.factor, _repeat.memory, _repeat.state = before
 
 
 @contextlib.contextmanager

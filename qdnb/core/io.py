@@ -10,27 +10,32 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Callable
 
 import numpy as np
 
 from qdnb.core import paths
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` so that readers see the old file or the new one,
-    never half of one."""
+def atomic_write(path: Path, write: Callable[[BinaryIO], Any]) -> Path:
+    """Call ``write`` on a temporary file beside ``path``, then move it into place, so
+    that readers see the old file or the new one, never half of one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            write(f)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (``atomic_write``)."""
+    return atomic_write(path, lambda f: f.write(data))
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -56,14 +61,13 @@ def atomic_write_json(path: Path, obj: Any) -> Path:
 
 def save_arrays(path: Path, config_hash_: str, **arrays: Any) -> Path:
     """Save named arrays to an ``.npz`` artifact, atomically, tagged with the
-    config hash they were computed under."""
-    import io
-
-    buf = io.BytesIO()
-    np.savez_compressed(
-        buf, config_hash=np.asarray(config_hash_), **{k: np.asarray(v) for k, v in arrays.items()}
+    config hash they were computed under.  Uncompressed and streamed to the disk: at
+    paper Chapter 4's repertoires (about 18 GB of policies' weights, which zlib barely
+    shrinks) would otherwise be compressed for minutes and held in memory whole."""
+    tagged = {"config_hash": np.asarray(config_hash_), **arrays}
+    return atomic_write(
+        path, lambda f: np.savez(f, **{k: np.asarray(v) for k, v in tagged.items()})
     )
-    return atomic_write_bytes(path, buf.getvalue())
 
 
 def load_arrays(path: Path, config_hash_: str) -> dict[str, np.ndarray] | None:
