@@ -24,6 +24,7 @@ from qdnb.chapters.ch5_flow_lenia import (
     spearman,
     world_statistics,
 )
+from qdnb.core.claims import FAILS, HOLDS
 from qdnb.core.paths import NOTEBOOKS
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.models.lenia.flt import (
@@ -33,6 +34,8 @@ from qdnb.models.lenia.flt import (
     loss_fn,
     make_model,
     make_train_step,
+    next_frame,
+    perturbed,
     train,
     unroll,
 )
@@ -56,10 +59,22 @@ def episodes(system):
     return fl.frames(fl.simulate_system(system, jax.random.PRNGKey(2), WORLD, 3))
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["token-only", "skip"])
+@pytest.fixture(
+    scope="module",
+    params=[
+        {},
+        {"skip": True},
+        {"head": "residual"},  # ours, beyond the thesis: its last layer moved off zero
+        {"head": "mass", "skip": True},
+    ],
+    ids=["token-only", "skip", "residual", "mass-skip"],
+)
 def model_params(request):
-    model = make_model(WORLD, dataclasses.replace(CFG, skip=request.param))
-    return model, init_params(model, jax.random.PRNGKey(0))
+    model = make_model(WORLD, dataclasses.replace(CFG, **request.param))
+    params = init_params(model, jax.random.PRNGKey(0))
+    if "head" in request.param:  # an untrained residual head is persistence: move it
+        params = shaken(params, jax.random.PRNGKey(3), 0.05)
+    return model, params
 
 
 def test_shapes_and_ranges(model_params, episodes):
@@ -290,6 +305,7 @@ def test_run_calls_the_notebook_stages_in_order_with_its_keys(monkeypatch):
         return stage
 
     trained = dataclasses.make_dataclass("T", ["params", "mean_frames"])(None, None)
+    held_out = dataclasses.make_dataclass("H", ["final"])({"flt": 0.1})
     choice = dataclasses.make_dataclass("C", ["system"])(None)
     search = dataclasses.make_dataclass("R", [("run", object)])(record("search"))
     for name, value in (
@@ -298,7 +314,7 @@ def test_run_calls_the_notebook_stages_in_order_with_its_keys(monkeypatch):
         ("compare_p0", None),
         ("make_model", None),
         ("train", trained),
-        ("evaluate", None),
+        ("evaluate", held_out),
         ("diagnose", None),
     ):
         monkeypatch.setattr(chapter, name, record(name, value))
@@ -316,6 +332,9 @@ def test_run_calls_the_notebook_stages_in_order_with_its_keys(monkeypatch):
         ("train", [t]),
         ("evaluate", [e]),
         ("diagnose", [e, replay]),
+        ("make_model", []),  # our variant (tiny has one): the same training and held-out keys
+        ("train", [t]),
+        ("evaluate", [e]),
         ("search", [s]),
     ]
     assert isinstance(result, chapter.Result)
@@ -424,3 +443,135 @@ def test_chapter_config_errors():
         FlowLeniaChapterConfig(
             num_seeds=1, world=dataclasses.replace(lenia_world(16), steps=10), flt=CFG
         )
+
+
+# ----- beyond the thesis (ours): residual and mass-conserving heads, noise, pushforward -----
+
+
+def shaken(params, key, scale=0.1):
+    """``params`` with every leaf moved by Gaussian noise: a model that is not persistence."""
+    leaves, treedef = jax.tree.flatten(params)
+    keys = jax.random.split(key, len(leaves))
+    return jax.tree.unflatten(
+        treedef, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+    )
+
+
+def test_a_zero_change_returns_the_input_frame_exactly(episodes):
+    frame = episodes[:, 3]
+    for head in ("residual", "mass"):
+        out = next_frame(head, jnp.zeros_like(frame), frame)
+        np.testing.assert_array_equal(np.asarray(out), np.asarray(frame))
+    change = jnp.full_like(frame, -2.0).at[..., 1:].set(2.0)  # below 0 for A, above 1 for P
+    out = next_frame("residual", change, frame)
+    assert float(out[..., 0].max()) == 0.0 and float(out[..., 1:].min()) == 1.0
+
+
+def test_an_untrained_residual_flt_is_persistence(episodes):
+    for head in ("residual", "mass"):
+        model = make_model(WORLD, dataclasses.replace(CFG, head=head))
+        params = init_params(model, jax.random.PRNGKey(0))
+        inputs = episodes[:, :-1]
+        np.testing.assert_array_equal(
+            np.asarray(model.apply(params, inputs)), np.asarray(inputs)
+        )  # the last layer starts at zero
+
+
+def test_the_mass_head_conserves_matter_in_every_prediction_and_unroll(episodes):
+    model = make_model(WORLD, dataclasses.replace(CFG, head="mass"))
+    params = shaken(init_params(model, jax.random.PRNGKey(0)), jax.random.PRNGKey(9))
+    inputs = episodes[:, :-1]
+    pred = model.apply(params, inputs)
+    assert float(jnp.max(jnp.abs(pred - inputs))) > 1e-3  # it does change the frames
+    mass = lambda x: jnp.sum(x[..., 0], axis=(-2, -1))
+    np.testing.assert_allclose(mass(pred), mass(inputs), rtol=1e-5)
+    rolled = unroll(model, params, episodes[:, 0])
+    np.testing.assert_allclose(
+        mass(rolled), jnp.broadcast_to(mass(episodes[:, :1]), mass(rolled).shape), rtol=1e-4
+    )
+    residual = make_model(WORLD, dataclasses.replace(CFG, head="residual"))
+    drift = jnp.abs(mass(residual.apply(params, inputs)) - mass(inputs)) / mass(inputs)
+    assert float(drift.max()) > 1e-3  # the plain residual head does not conserve it
+
+
+def test_noise_perturbs_the_inputs_only_and_needs_a_key(episodes):
+    model = make_model(WORLD, dataclasses.replace(CFG, head="residual"))
+    params = shaken(init_params(model, jax.random.PRNGKey(0)), jax.random.PRNGKey(9))
+    key = jax.random.PRNGKey(4)
+    noisy = perturbed(episodes[:, :-1], jax.random.fold_in(key, 1), 0.05)
+    assert float(noisy[..., 0].min()) >= 0.0 and float(noisy[..., 1:].max()) <= 1.0
+    assert 0.01 < float(jnp.std(noisy - episodes[:, :-1])) < 0.06
+    by_hand = jnp.mean((model.apply(params, noisy) - episodes[:, 1:]) ** 2)  # true targets
+    got = loss_fn(model, params, episodes, key, noise=0.05)
+    assert float(got) == pytest.approx(float(by_hand), rel=1e-5)
+    assert float(got) != pytest.approx(float(loss_fn(model, params, episodes, key)), rel=1e-3)
+    with pytest.raises(ValueError, match="noise needs a key"):
+        loss_fn(model, params, episodes, noise=0.05)
+
+
+def test_pushforward_adds_a_pass_on_the_models_own_predictions_gradients_stopped(episodes):
+    model = make_model(WORLD, dataclasses.replace(CFG, head="residual"))
+    params = shaken(init_params(model, jax.random.PRNGKey(0)), jax.random.PRNGKey(9))
+    inputs, targets = episodes[:, :-1], episodes[:, 1:]
+    mse = lambda pred: jnp.mean((pred - targets) ** 2)
+    first = model.apply(params, inputs)
+    own = jnp.concatenate([episodes[:, :1], first[:, :-1]], axis=1)  # x_0, then its own x̂_t
+    by_hand = lambda p: mse(model.apply(p, inputs)) + mse(model.apply(p, own))  # own: fixed
+    got = loss_fn(model, params, episodes, pushforward=True)
+    assert float(got) == pytest.approx(float(by_hand(params)), rel=1e-5)
+    grads = jax.grad(lambda p: loss_fn(model, p, episodes, pushforward=True))(params)
+    expected = jax.grad(by_hand)(params)  # no gradient through the first pass's outputs
+    for g, e in zip(jax.tree.leaves(grads), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(e), rtol=1e-4, atol=1e-7)
+    flowing = jax.grad(
+        lambda p: (
+            mse(model.apply(p, inputs))
+            + mse(
+                model.apply(
+                    p, jnp.concatenate([episodes[:, :1], model.apply(p, inputs)[:, :-1]], axis=1)
+                )
+            )
+        )
+    )(params)
+    differ = max(
+        float(jnp.max(jnp.abs(g - f)))
+        for g, f in zip(jax.tree.leaves(grads), jax.tree.leaves(flowing))
+    )
+    assert differ > 1e-6  # letting them flow would be another gradient
+
+
+def test_a_variant_trains_deterministically(system):
+    cfg = dataclasses.replace(CFG, head="mass", noise=0.02, pushforward=True)
+    model = make_model(WORLD, cfg)
+    a = train(model, cfg, WORLD, system, jax.random.PRNGKey(5), progress=False)
+    b = train(model, cfg, WORLD, system, jax.random.PRNGKey(5), progress=False)
+    np.testing.assert_array_equal(a.losses, b.losses)
+    assert np.all(np.isfinite(a.losses))
+
+
+def test_bad_variant_settings_are_refused():
+    with pytest.raises(ValueError, match="head must be one of direct, residual, mass"):
+        FLTConfig(head="flow")
+    with pytest.raises(ValueError, match="noise must be a non-negative"):
+        FLTConfig(noise=-0.1)
+
+
+def test_the_better_predictor_is_searched_and_our_variant_has_its_own_claims():
+    def held(flt_final, flt_first=0.1):
+        errors = {
+            "flt": {"A": np.array([[flt_first, flt_final]] * 4), "frame": np.zeros((4, 2))},
+            "persistence": {"A": np.full((4, 2), 0.4), "frame": np.zeros((4, 2))},
+            "mean_frame": {"A": np.full((4, 2), 0.3), "frame": np.zeros((4, 2))},
+        }
+        return HeldOut(errors, np.zeros(1), np.zeros(1), np.zeros(4))
+
+    thesis, ours = held(0.35), held(0.2)
+    assert chapter.best_model(thesis, None) == chapter.THESIS_FLT
+    assert chapter.best_model(thesis, ours) == chapter.OUR_FLT
+    assert chapter.best_model(ours, thesis) == chapter.THESIS_FLT
+    beats, grows = chapter.variant_claims(ours)
+    assert beats["id"] == "ch5/variant_beats_baselines" and beats["status"] == HOLDS
+    assert grows["id"] == "ch5/variant_error_grows" and grows["status"] == HOLDS
+    flat = chapter.variant_claims(held(0.2, flt_first=0.25))  # its error falls along the episode
+    assert flat[0]["status"] == HOLDS and flat[1]["status"] == FAILS
+    assert chapter.variant_claims(held(0.35))[0]["status"] == FAILS  # above the mean frame

@@ -10,6 +10,17 @@ prediction of frame ``t + 1``: ``A`` through a softplus (matter is non-negative 
 may exceed 1) and ``P`` through a sigmoid (kernel weights live in ``[0, 1]``).
 
 Training is teacher-forced over whole episodes (``loss_fn``, Eq. 5.3).
+
+**Beyond the thesis** (ours, off by default; ``FLTConfig``'s ``head``, ``noise`` and
+``pushforward``), from learned simulators of physical fields: a ``"residual"`` head
+predicts the change of the input frame (``A`` kept non-negative, ``P`` in ``[0, 1]``;
+a zero change returns the input exactly, and the last layer starts at zero, so an
+untrained model is persistence); a ``"mass"`` head also rescales ``A`` to the input
+frame's total matter, which Flow Lenia conserves; ``noise`` perturbs the
+teacher-forced inputs during training (Sanchez-Gonzalez et al. 2020) and
+``pushforward`` adds the loss of a second pass fed the model's own one-step
+predictions, gradients stopped through them (Brandstetter et al. 2022): both train on
+inputs like the ones an unrolled model feeds itself.
 Evaluation (``unroll``) starts from ``x_0`` only and feeds every prediction back
 as the next input, keeping the keys and values of the earlier tokens (a cache),
 so each step costs one token; ``unroll(..., cached=False)`` recomputes the
@@ -70,6 +81,7 @@ class FrameDecoder(nn.Module):
     height: int
     width: int
     channels: int
+    head: str = "direct"  # another head: the last layer's raw output, which starts at zero
 
     @nn.compact
     def __call__(self, h: jax.Array, skips: list[jax.Array] | None = None) -> jax.Array:
@@ -80,9 +92,30 @@ class FrameDecoder(nn.Module):
         for level, f in zip(reversed(range(len(self.features))), widths):
             if skips is not None:  # U-Net: the input frame's features at this resolution
                 x = jnp.concatenate([x, skips[level]], axis=-1)
-            x = nn.ConvTranspose(f, (3, 3), strides=(2, 2), padding="SAME")(x)
+            last = level == 0 and self.head != "direct"
+            zero = {"kernel_init": nn.initializers.zeros} if last else {}
+            x = nn.ConvTranspose(f, (3, 3), strides=(2, 2), padding="SAME", **zero)(x)
             x = nn.relu(x) if level else x
+        if self.head != "direct":
+            return x
         return jnp.concatenate([nn.softplus(x[..., :1]), nn.sigmoid(x[..., 1:])], axis=-1)
+
+
+HEADS = ("direct", "residual", "mass")
+
+
+def next_frame(head: str, change: jax.Array, frame: jax.Array) -> jax.Array:
+    """A residual head's prediction from the ``change`` it output and the input
+    ``frame`` (``(..., H, W, C)``): ``A + dA`` kept non-negative and ``P + dP`` clipped
+    to ``[0, 1]``; with ``"mass"``, ``A`` then rescaled so that its total over the grid
+    is the input's (matter conserved exactly).  A zero change returns ``frame``."""
+    a = jnp.maximum(frame[..., :1] + change[..., :1], 0.0)
+    p = jnp.clip(frame[..., 1:] + change[..., 1:], 0.0, 1.0)
+    if head == "mass":
+        before = jnp.sum(frame[..., :1], axis=(-3, -2), keepdims=True)
+        after = jnp.sum(a, axis=(-3, -2), keepdims=True)
+        a = jnp.where(after > 0, a * (before / jnp.where(after > 0, after, 1.0)), a)
+    return jnp.concatenate([a, p], axis=-1)
 
 
 class FLT(nn.Module):
@@ -100,6 +133,7 @@ class FLT(nn.Module):
     dropout: float = 0.0
     skip: bool = False  # the decoder also sees the input frame's CNN features (U-Net skips)
     padding: str = "SAME"  # the encoder's: "CIRCULAR" for a torus, "SAME" (zeros) for walls
+    head: str = "direct"  # the thesis's; "residual" or "mass": ours (``next_frame``)
 
     def setup(self):
         scale = 2 ** len(self.features)
@@ -113,7 +147,11 @@ class FLT(nn.Module):
                 f"embed_dim {self.embed_dim} is not a multiple of num_heads {self.num_heads}"
             )
         self.encoder = FrameEncoder(self.features, self.embed_dim, self.padding)
-        self.decoder = FrameDecoder(self.features, self.height, self.width, self.channels)
+        if self.head not in HEADS:
+            raise ValueError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        self.decoder = FrameDecoder(
+            self.features, self.height, self.width, self.channels, self.head
+        )
         self.embed_timestep = nn.Embed(self.max_steps, self.embed_dim)
         self.embed_ln = nn.LayerNorm()
         self.drop = nn.Dropout(self.dropout)
@@ -136,15 +174,19 @@ class FLT(nn.Module):
         )
         return self.ln_final(x), caches
 
-    def decode(self, hidden: jax.Array, maps: list[jax.Array] | None) -> jax.Array:
+    def decode(
+        self, hidden: jax.Array, maps: list[jax.Array] | None, inputs: jax.Array
+    ) -> jax.Array:
+        """The frames that follow ``inputs`` ``(B, T, H, W, C)``, from their hidden states."""
         b, t = hidden.shape[:2]
         frames = self.decoder(hidden.reshape(b * t, -1), maps)
-        return frames.reshape(b, t, self.height, self.width, self.channels)
+        frames = frames.reshape(b, t, self.height, self.width, self.channels)
+        return frames if self.head == "direct" else next_frame(self.head, frames, inputs)
 
     def __call__(self, inputs: jax.Array, deterministic: bool = True) -> jax.Array:
         tokens, maps = self.tokens(inputs, jnp.arange(inputs.shape[1]))
         hidden, _ = self.transformer(tokens, (None,) * self.num_layers, 0, deterministic)
-        return self.decode(hidden, maps)
+        return self.decode(hidden, maps, inputs)
 
     def init_cache(self, batch: int, dtype=jnp.float32) -> Cache:
         shape = (batch, self.max_steps, self.num_heads, self.embed_dim // self.num_heads)
@@ -156,7 +198,7 @@ class FLT(nn.Module):
         """Feed frame ``x_t`` ``(B, H, W, C)`` (token ``t``) and predict ``x_{t+1}``."""
         tokens, maps = self.tokens(frame[:, None], t[None])
         hidden, cache = self.transformer(tokens, cache, t, True)
-        return self.decode(hidden, maps)[:, 0], cache
+        return self.decode(hidden, maps, frame[:, None])[:, 0], cache
 
 
 @dataclass(frozen=True)
@@ -177,6 +219,10 @@ class FLTConfig:
     learning_rate: float = 1e-3
     train_steps: int = 1000
     per_modality: bool = False
+    # beyond the thesis (ours): the output head, input noise and the pushforward pass
+    head: str = "direct"
+    noise: float = 0.0
+    pushforward: bool = False
 
     def __post_init__(self):
         for name in ("embed_dim", "num_layers", "num_heads", "batch_size", "train_steps"):
@@ -191,6 +237,10 @@ class FLTConfig:
             raise ValueError(
                 f"features must be a non-empty tuple of positive widths, got {self.features}"
             )
+        if self.head not in HEADS:
+            raise ValueError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        if not self.noise >= 0:
+            raise ValueError(f"noise must be a non-negative standard deviation, got {self.noise}")
         if not 0.0 <= self.dropout < 1.0 or not self.learning_rate > 0:
             raise ValueError(
                 f"dropout must be in [0, 1) and learning_rate positive, got "
@@ -211,11 +261,21 @@ def make_model(world: fl.FlowLeniaConfig, cfg: FLTConfig) -> FLT:
         cfg.dropout,
         cfg.skip,
         "CIRCULAR" if world.border == "torus" else "SAME",
+        cfg.head,
     )
 
 
 def init_params(model: FLT, key: jax.Array) -> Any:
     return model.init(key, jnp.zeros((1, 2, model.height, model.width, model.channels)))
+
+
+def perturbed(frames: jax.Array, key: jax.Array, noise: float) -> jax.Array:
+    """``frames`` plus Gaussian noise of standard deviation ``noise`` on every channel,
+    ``A`` kept non-negative and ``P`` in ``[0, 1]``."""
+    noisy = frames + noise * jax.random.normal(key, frames.shape, frames.dtype)
+    return jnp.concatenate(
+        [jnp.maximum(noisy[..., :1], 0.0), jnp.clip(noisy[..., 1:], 0.0, 1.0)], axis=-1
+    )
 
 
 def loss_fn(
@@ -224,6 +284,8 @@ def loss_fn(
     episodes: jax.Array,
     key: jax.Array | None = None,
     per_modality: bool = False,
+    noise: float = 0.0,
+    pushforward: bool = False,
 ) -> jax.Array:
     """Eq. 5.3 with teacher forcing: frames ``x_0 .. x_{T-1}`` in, ``x_1 .. x_T``
     predicted, the squared error averaged over episodes, timesteps, cells and
@@ -231,25 +293,48 @@ def loss_fn(
     averages over t: this is the same up to the constant factor
     ``1 / (H W (1 + |K|))``, with the same relative weight of ``A`` and ``P``.
     ``per_modality`` (an ablation): ``MSE(A) + MSE(P)`` instead, each averaged
-    over its own channels, so that ``A`` weighs as much as all of ``P``."""
+    over its own channels, so that ``A`` weighs as much as all of ``P``.
+
+    Ours, beyond the thesis: ``noise`` (needs ``key``) perturbs the input frames
+    ``x_0 .. x_{T-1}`` (``perturbed``), the targets staying the true frames;
+    ``pushforward`` adds the same loss for a second pass whose inputs are ``x_0`` and
+    the first pass's predictions of ``x_1 .. x_{T-1}``, with their gradients stopped."""
     rngs = None if key is None else {"dropout": key}
-    pred = model.apply(params, episodes[:, :-1], deterministic=key is None, rngs=rngs)
-    err = (pred - episodes[:, 1:]) ** 2
-    if per_modality:
-        return jnp.mean(err[..., :1]) + jnp.mean(err[..., 1:])
-    return jnp.mean(err)
+    inputs, targets = episodes[:, :-1], episodes[:, 1:]
+    if noise > 0:
+        if key is None:
+            raise ValueError("noise needs a key")
+        inputs = perturbed(inputs, jax.random.fold_in(key, 1), noise)
+
+    def loss(pred):
+        err = (pred - targets) ** 2
+        if per_modality:
+            return jnp.mean(err[..., :1]) + jnp.mean(err[..., 1:])
+        return jnp.mean(err)
+
+    pred = model.apply(params, inputs, deterministic=key is None, rngs=rngs)
+    total = loss(pred)
+    if pushforward:  # the model's own predictions in, as an unrolled model sees them
+        own = jnp.concatenate([episodes[:, :1], jax.lax.stop_gradient(pred[:, :-1])], axis=1)
+        rngs2 = None if key is None else {"dropout": jax.random.fold_in(key, 2)}
+        total = total + loss(model.apply(params, own, deterministic=key is None, rngs=rngs2))
+    return total
 
 
 def make_train_step(
-    model: FLT, optimizer: optax.GradientTransformation, per_modality: bool = False
+    model: FLT,
+    optimizer: optax.GradientTransformation,
+    per_modality: bool = False,
+    noise: float = 0.0,
+    pushforward: bool = False,
 ):
     """``(params, opt_state, episodes, key) -> (params, opt_state, loss)``, not jitted
     (it is called inside ``train``'s jitted loop and jitted by the tests)."""
 
     def step(params, opt_state, episodes, key):
-        loss, grads = jax.value_and_grad(lambda p: loss_fn(model, p, episodes, key, per_modality))(
-            params
-        )
+        loss, grads = jax.value_and_grad(
+            lambda p: loss_fn(model, p, episodes, key, per_modality, noise, pushforward)
+        )(params)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
@@ -339,7 +424,8 @@ def train(
     params = init_params(model, k_init)
     optimizer = make_optimizer(cfg.learning_rate)
     opt_state = optimizer.init(params)
-    step = make_train_step(model, optimizer, cfg.per_modality)
+    step = make_train_step(model, optimizer, cfg.per_modality, cfg.noise, cfg.pushforward)
+    keyed = cfg.dropout > 0 or cfg.noise > 0  # a key for the step's randomness
 
     @jax.jit
     def one(params, opt_state, frame_sum, key):
@@ -348,9 +434,7 @@ def train(
         # data-parallel over every local device, on CPU host devices too: the convolutions'
         # gradients gain from it (bench/scale_out.py), unlike the QDT's matmuls
         episodes = shard_batch(episodes)
-        params, opt_state, loss = step(
-            params, opt_state, episodes, k_drop if cfg.dropout > 0 else None
-        )
+        params, opt_state, loss = step(params, opt_state, episodes, k_drop if keyed else None)
         drift = jnp.max(fl.mass_drift(episodes[..., :1]))
         return params, opt_state, frame_sum + jnp.sum(episodes, axis=0), loss, drift
 
