@@ -92,10 +92,11 @@ def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
         first, gpu = loops[0], [loop["gpu_hours"] for loop in loops]
         runs = sum(loop["repeats"] for loop in loops)
         unit = first.get("unit", "step")
+        length = sum(loop["full_steps"] for loop in loops)
         rows.append(
             {
                 "loop": name + (f" (×{runs:g})" if runs != 1 else ""),
-                "length": f"{sum(loop['full_steps'] for loop in loops):,} {unit}s",
+                "length": f"{length:,} {unit}{'' if length == 1 else 's'}",
                 "compile": f"{first['compile_s']:.1f} s",
                 "per step": "—"
                 if first.get("seconds_per_step") is None
