@@ -17,6 +17,8 @@ def gigabytes(n: float) -> str:
 def hours(h: float | None) -> str:
     if h is None:
         return "not measured"
+    if h >= 1000:
+        return f"{h:,.0f} h"
     return f"{h:.3g} h" if h >= 0.1 else f"{h * 60:.2g} min"
 
 
