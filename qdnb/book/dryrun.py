@@ -62,6 +62,7 @@ def gpu_rates(bench_dir: Path | None = None, published: Path | None = None) -> l
     projection (``None``), rather than a guess.  With the book's own ``bench/results``
     (the default), or with ``published`` (a folder of runs published at paper), the
     loops of published runs count their measured time (``published_rates``)."""
+    with_published = bench_dir is None or published is not None
     bench_dir = bench_dir or paths.ROOT / "bench" / "results"
     rates: list[dict[str, Any]] = []
 
@@ -116,7 +117,7 @@ def gpu_rates(bench_dir: Path | None = None, published: Path | None = None) -> l
                             "what": f"the same loop's dry run on {nb['ran_on']['device']}",
                         }
                     )
-    if bench_dir == paths.ROOT / "bench" / "results" or published is not None:
+    if with_published:
         rates += published_rates(where=published)  # the book's own, or those named
     qdt = load("qdt_h100_paper.json")
     if qdt:
@@ -147,7 +148,7 @@ def published_rates(scale: str = "paper", where: Path | None = None) -> list[dic
     """A run published at ``scale`` (``data/published``) ran its loops in full
     somewhere: each method's own wall time in its ``summary.json`` stands for that loop."""
     rates = []
-    for archive in sorted((where or publish.PUBLISHED / scale).glob(f"*/*-{scale}.tar.gz")):
+    for archive in publish.archives(scale, where):
         try:
             manifest, files = publish.read_archive(archive)
         except publish.ArchiveError:
@@ -200,10 +201,11 @@ def matching_rate(
 def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[str, Any]:
     """What one recorded loop needs in the full run: hours on this machine (compile
     once, then every step at the measured rate, times the loop's repeats); hours on
-    one GPU from ``rate`` (``None`` without one); bytes of its checkpoint (carry and
-    outputs at full length) and of device memory (carry, outputs and XLA's working
-    memory, whose per-device figure counts once per device), times the seeds the full
-    run holds side by side where the dry run ran one (``memory_factor``)."""
+    one GPU from ``rate`` (``None`` without one); bytes of its state (the carry), of its
+    checkpoint (carry and outputs at full length) and of device memory (carry, outputs
+    and XLA's working memory, whose per-device figure counts once per device), times the
+    seeds the full run holds side by side where the dry run ran one (``memory_factor``;
+    the carry and outputs by ``state_factor``, which copies sharing them leave at 1)."""
     repeats = loop.get("repeats", 1.0)
     steps = loop["full_steps"]
     per_step = loop.get("seconds_per_step")  # None: not run on this machine ("skipped")
@@ -226,6 +228,7 @@ def project(loop: dict[str, Any], rate: dict[str, Any] | None = None) -> dict[st
     if loop["kind"] == "skipped":  # XLA's CPU plan of a step this machine cannot run: not a GPU's
         device = 0
     return {
+        "state_bytes": carry,
         "cpu_hours": None if cpu_s is None else cpu_s / 3600,
         "gpu_hours": gpu_h,
         "gpu_rate_source": None if rate is None else f"{rate['source']}: {rate['what']}",

@@ -107,9 +107,7 @@ def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
                 if first["kind"] == "skipped"
                 else hours(sum(loop["cpu_hours"] or 0.0 for loop in loops)),
                 "one H100": hours(None if None in gpu else sum(gpu)),
-                "state": gigabytes(
-                    max(loop.get("carry_bytes", 0) * loop.get("memory_factor", 1) for loop in loops)
-                ),
+                "state": gigabytes(max(loop["state_bytes"] for loop in loops)),
                 "device": gigabytes(max(loop["device_bytes"] for loop in loops)),
             }
         )
@@ -120,7 +118,7 @@ def published_rows(scale: str, where: Path | None = None) -> list[dict[str, str]
     """One row per run published at ``scale`` (``data/published``): computed in full
     elsewhere, where, when and in how long."""
     rows = []
-    for archive in sorted((where or publish.PUBLISHED / scale).glob(f"*/*-{scale}.tar.gz")):
+    for archive in publish.archives(scale, where):
         try:
             manifest, _ = publish.read_archive(archive)
         except publish.ArchiveError as err:

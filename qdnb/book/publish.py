@@ -48,6 +48,12 @@ def archive_path(scale: str, notebook: str) -> Path:
     return PUBLISHED / scale / notebook / f"{notebook}-{scale}.tar.gz"
 
 
+def archives(scale: str, where: Path | None = None) -> list[Path]:
+    """The archives published at ``scale`` (``archive_path``'s layout), in ``where``
+    (default: ``data/published/<scale>``)."""
+    return sorted((where or PUBLISHED / scale).glob(f"*/*-{scale}.tar.gz"))
+
+
 def sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 

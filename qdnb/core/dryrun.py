@@ -211,8 +211,8 @@ def too_big_here(name: str, jitted: Any, *args: Any, full_steps: int = 1) -> boo
         return False
     began = time.perf_counter()
     memory = _memory(jitted.lower(*args).compile())
-    need = sum(memory.values())
-    if need < 0.8 * host_memory_bytes():
+    need, has = sum(memory.values()), host_memory_bytes()
+    if need < 0.8 * has:
         return False
     record(
         "skipped",
@@ -220,7 +220,7 @@ def too_big_here(name: str, jitted: Any, *args: Any, full_steps: int = 1) -> boo
         full_steps=int(full_steps),
         compile_s=time.perf_counter() - began,
         reason=f"a step needs {need / 1e9:.0f} GB of working memory on this machine's "
-        f"XLA (CPU), which has {host_memory_bytes() / 1e9:.0f} GB",
+        f"XLA ({jax.default_backend().upper()}), which has {has / 1e9:.0f} GB",
         **memory,
     )
     return True
