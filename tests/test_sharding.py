@@ -89,6 +89,26 @@ def test_matmul_bound_training_stays_whole_on_cpu_host_devices():
         assert split["a"].devices() == set(jax.devices())
 
 
+def test_episodes_read_outside_jit_come_back_whole_on_every_device(monkeypatch):
+    """Flow Lenia's episodes are simulated split over the devices and returned replicated
+    (eager code scoring split episodes deadlocked XLA:CPU's collectives); a jitted caller
+    that keeps them split (the FLT's training step) asks for ``split=True``."""
+    from qdnb.models.lenia import flow_lenia as fl
+
+    world = fl.FlowLeniaConfig(height=16, width=16, kernels=2, steps=3, patch_size=4)
+    system = fl.sample_system(jax.random.PRNGKey(0), world)
+    whole = fl.simulate_system(system, jax.random.PRNGKey(1), world, 4)
+    split = fl.simulate_system(system, jax.random.PRNGKey(1), world, 4, split=True)
+    np.testing.assert_array_equal(whole.A, split.A)  # the same episodes either way
+    assert whole.A.sharding.is_fully_replicated
+    if jax.device_count() > 1:
+        assert not split.A.sharding.is_fully_replicated
+        assert split.A.sharding.shard_shape(split.A.shape)[0] == 4 // jax.device_count()
+    monkeypatch.setattr(sharding, "mesh", lambda: None)
+    tree = {"a": jnp.ones((4, 2))}
+    assert sharding.replicated(tree) is tree  # one device: untouched
+
+
 def test_a_cluster_is_recognised_from_its_variables():
     assert not sharding.cluster_requested({})
     assert not sharding.cluster_requested({"SLURM_JOB_ID": "7", "SLURM_NTASKS": "1"})

@@ -237,6 +237,44 @@ def shard_batch(tree: Any, dense: bool = False) -> Any:
     )
 
 
+def replicated(tree: Any) -> Any:
+    """``tree`` with every array leaf whole on every device of ``mesh()``: what a jitted
+    function returns to code that reads it outside ``jit`` (episodes scored by eager
+    operations).  Inside ``jit`` only; with one device, or inside a seeds-split loop, it
+    returns its input untouched.
+
+    An eager operation on an array split over CPU host devices runs as its own small
+    program over the devices, with collectives when it crosses the split; several of
+    them dispatched at once can wait on each other in XLA:CPU's rendezvous and abort
+    the process after 40 s ("Termination timeout for `all gather`": the FLT's eager
+    evaluation of 64 split episodes did, every time).  A replicated array needs no
+    collective: each device computes the operation whole."""
+    m = mesh()
+    if m is None or _populations_whole.get():
+        return tree
+    import jax
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    whole = NamedSharding(m, PartitionSpec())
+    return jax.tree.map(
+        lambda x: jax.lax.with_sharding_constraint(x, whole) if getattr(x, "ndim", 0) else x, tree
+    )
+
+
+def put_replicated(tree: Any) -> Any:
+    """``tree`` placed whole on every device of ``mesh()``, outside ``jit``: a loop's
+    initial carry placed where its jitted step hands the carry back, so that the step
+    compiles once (a fresh array sits on one device; the step returns it replicated,
+    and the second call would compile the step again).  Untouched on one device."""
+    m = mesh()
+    if m is None:
+        return tree
+    import jax
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    return jax.device_put(tree, NamedSharding(m, PartitionSpec()))
+
+
 def _splits_dense(m: Any) -> bool:
     return SPLIT_DENSE_ON_CPU or m.devices.flat[0].platform != "cpu"
 

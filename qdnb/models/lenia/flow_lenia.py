@@ -81,7 +81,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from qdnb.core.sharding import shard_batch
+from qdnb.core.sharding import replicated, shard_batch
 
 RANGE_FIELDS = (
     "R_range",
@@ -649,7 +649,7 @@ def simulate_batch(key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> tuple[Sy
     states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
     systems, states, keys = shard_batch((systems, states, jax.random.split(k_run, batch)))
     episodes = jax.vmap(lambda sy, st, k: rollout(sy, st, k, cfg))(systems, states, keys)
-    return systems, episodes
+    return replicated((systems, episodes))
 
 
 def mass_drift(A: jax.Array) -> jax.Array:
@@ -658,21 +658,30 @@ def mass_drift(A: jax.Array) -> jax.Array:
     return jnp.max(jnp.abs(mass / mass[..., :1] - 1.0), axis=-1)
 
 
-@partial(jax.jit, static_argnames=("cfg",))
-def rollout_batch(system: System, states: State, key: jax.Array, cfg: FlowLeniaConfig) -> State:
+@partial(jax.jit, static_argnames=("cfg", "split"))
+def rollout_batch(
+    system: System, states: State, key: jax.Array, cfg: FlowLeniaConfig, split: bool = False
+) -> State:
     """Episodes of one system from a batch of initial states (``A`` ``(B, H, W, C)``),
-    one key each split from ``key``: ``A`` ``(B, T + 1, H, W, C)``, ``P`` likewise."""
+    one key each split from ``key``: ``A`` ``(B, T + 1, H, W, C)``, ``P`` likewise.
+    They are simulated split over every local device and returned whole on each
+    (``replicated``: safe for eager code to read), or, with ``split``, left split for a
+    jitted caller that keeps them so (the FLT's training step)."""
     keys = jax.random.split(key, states.A.shape[0])
     states, keys = shard_batch((states, keys))  # the episodes over every local device
-    return jax.vmap(lambda st, k: rollout(system, st, k, cfg))(states, keys)
+    episodes = jax.vmap(lambda st, k: rollout(system, st, k, cfg))(states, keys)
+    return episodes if split else replicated(episodes)
 
 
-@partial(jax.jit, static_argnames=("cfg", "batch"))
-def simulate_system(system: System, key: jax.Array, cfg: FlowLeniaConfig, batch: int) -> State:
+@partial(jax.jit, static_argnames=("cfg", "batch", "split"))
+def simulate_system(
+    system: System, key: jax.Array, cfg: FlowLeniaConfig, batch: int, split: bool = False
+) -> State:
     """``batch`` episodes of one system, each from its own random initial state
-    (``A`` ``(batch, T + 1, H, W, C)``, ``P`` ``(batch, T + 1, H, W, |K|)``)."""
+    (``A`` ``(batch, T + 1, H, W, C)``, ``P`` ``(batch, T + 1, H, W, |K|)``); ``split`` as
+    in ``rollout_batch``."""
     if batch < 1:
         raise ValueError(f"batch must be a positive integer, got {batch}")
     k_init, k_run = jax.random.split(key)
     states = jax.vmap(initial_state, in_axes=(0, None))(jax.random.split(k_init, batch), cfg)
-    return rollout_batch(system, states, k_run, cfg)
+    return rollout_batch(system, states, k_run, cfg, split)

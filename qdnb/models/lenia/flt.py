@@ -46,7 +46,7 @@ from flax import linen as nn
 from tqdm import tqdm
 
 from qdnb.core import checkpoint, dryrun
-from qdnb.core.sharding import shard_batch
+from qdnb.core.sharding import put_replicated, shard_batch
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.nets.transformer import Block, Cache, make_optimizer, run_blocks
 
@@ -430,10 +430,10 @@ def train(
     @jax.jit
     def one(params, opt_state, frame_sum, key):
         k_sim, k_drop = jax.random.split(key)
-        episodes = fl.frames(fl.simulate_system(system, k_sim, world, cfg.batch_size))
         # data-parallel over every local device, on CPU host devices too: the convolutions'
         # gradients gain from it (bench/scale_out.py), unlike the QDT's matmuls
-        episodes = shard_batch(episodes)
+        episodes = fl.simulate_system(system, k_sim, world, cfg.batch_size, split=True)
+        episodes = shard_batch(fl.frames(episodes))
         params, opt_state, loss = step(params, opt_state, episodes, k_drop if keyed else None)
         drift = jnp.max(fl.mass_drift(episodes[..., :1]))
         return params, opt_state, frame_sum + jnp.sum(episodes, axis=0), loss, drift
@@ -457,6 +457,8 @@ def train(
             start_step, (params, opt_state, frame_sum, done_losses, done_drifts), _ = restored
             losses, drifts = list(jnp.asarray(done_losses)), list(jnp.asarray(done_drifts))
             checkpoint.log(f"{saver.name!r} resumed after step {start_step} of {cfg.train_steps}")
+    # placed as the step hands them back (whole on every device): the step compiles once
+    params, opt_state, frame_sum = put_replicated((params, opt_state, frame_sum))
     start = time.perf_counter()
     bar = tqdm(
         range(start_step, cfg.train_steps),
