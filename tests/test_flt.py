@@ -181,6 +181,12 @@ def test_evaluate_scores_the_baselines_frame_by_frame(model_params, system):
         np.mean((truth[:, 1:, ..., :1] - truth[:, :1, ..., :1]) ** 2, axis=(2, 3, 4)),
         rtol=1e-5,
     )
+    # one step of persistence: each true frame against the next
+    np.testing.assert_allclose(
+        out.errors["copy_previous"]["A"][:3],
+        np.mean((truth[:, 1:, ..., :1] - truth[:, :-1, ..., :1]) ** 2, axis=(2, 3, 4)),
+        rtol=1e-5,
+    )
     assert out.drift.shape == (5,) and out.drift.max() < 1e-5
 
 
