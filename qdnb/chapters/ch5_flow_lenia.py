@@ -658,15 +658,20 @@ class SurpriseSearch:
         shape = (cells, self.world.height, self.world.width)
         final_truth, final_flt = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
         elites = np.flatnonzero(np.asarray(repertoire.filled))
+        # the elites replayed in batches of the search's size (the last one padded with its
+        # first elite), by the search's jitted evaluation: the same program, the same rounding
+        evaluate = jax.jit(self.evaluate)
         for i in range(0, elites.size, self.batch_size):
             part = elites[i : i + self.batch_size]
-            genotypes = jax.tree.map(lambda x: x[part], repertoire.genotypes)
-            surprise, _, truth, pred, _ = self.evaluate(
+            padded = np.concatenate([part, np.full(self.batch_size - part.size, part[0])])
+            genotypes = jax.tree.map(lambda x: x[padded], repertoire.genotypes)
+            surprise, _, truth, pred, _ = evaluate(
                 params, system, genotypes, jax.random.fold_in(key, 1)
             )
-            replayed[part] = np.asarray(surprise)
-            final_truth[part] = np.asarray(truth[..., 0])
-            final_flt[part] = np.asarray(pred[..., 0])
+            n = part.size
+            replayed[part] = np.asarray(surprise)[:n]
+            final_truth[part] = np.asarray(truth[:n, ..., 0])
+            final_flt[part] = np.asarray(pred[:n, ..., 0])
         seconds = time.perf_counter() - start
         return SearchResult(
             repertoire, history, self.batch_size, replayed, final_truth, final_flt, seconds
