@@ -231,10 +231,23 @@ def shard_batch(tree: Any, dense: bool = False) -> Any:
     arrays = [x for x in jax.tree.leaves(tree) if getattr(x, "ndim", 0)]
     if any(x.shape[0] % m.devices.size for x in arrays):
         return tree  # a batch the devices do not divide (3 policies on 2) stays whole
-    split = NamedSharding(m, PartitionSpec(BATCH))
+    return _constrained(tree, NamedSharding(m, PartitionSpec(BATCH)))
+
+
+def _constrained(tree: Any, where: Any) -> Any:
+    """Every array leaf of ``tree`` constrained to the sharding ``where`` (inside ``jit``)."""
+    import jax
+
     return jax.tree.map(
-        lambda x: jax.lax.with_sharding_constraint(x, split) if getattr(x, "ndim", 0) else x, tree
+        lambda x: jax.lax.with_sharding_constraint(x, where) if getattr(x, "ndim", 0) else x, tree
     )
+
+
+def _whole(m: Any) -> Any:
+    """Every array whole on every device of the mesh ``m``."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    return NamedSharding(m, PartitionSpec())
 
 
 def replicated(tree: Any) -> Any:
@@ -252,13 +265,7 @@ def replicated(tree: Any) -> Any:
     m = mesh()
     if m is None or _populations_whole.get():
         return tree
-    import jax
-    from jax.sharding import NamedSharding, PartitionSpec
-
-    whole = NamedSharding(m, PartitionSpec())
-    return jax.tree.map(
-        lambda x: jax.lax.with_sharding_constraint(x, whole) if getattr(x, "ndim", 0) else x, tree
-    )
+    return _constrained(tree, _whole(m))
 
 
 def put_replicated(tree: Any) -> Any:
@@ -270,9 +277,8 @@ def put_replicated(tree: Any) -> Any:
     if m is None:
         return tree
     import jax
-    from jax.sharding import NamedSharding, PartitionSpec
 
-    return jax.device_put(tree, NamedSharding(m, PartitionSpec()))
+    return jax.device_put(tree, _whole(m))
 
 
 def _splits_dense(m: Any) -> bool:
