@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import platform
 import shutil
 import time
 from pathlib import Path
@@ -360,7 +359,7 @@ def dry_run(
 def ran_on() -> dict[str, Any]:
     """Where and when a dry run ran."""
     return {
-        "machine": platform.processor() or platform.machine(),
+        "machine": provenance.processor(),
         "cpu_count": os.cpu_count(),
         "device": provenance.device_text(),
         "git": provenance.git_sha(),

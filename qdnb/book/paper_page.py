@@ -147,13 +147,15 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
             "`bench/results/paper_dryrun.json`, which this page shows."
         )
     first = next(iter(report["notebooks"].values()))["ran_on"]
+    machines = {nb["ran_on"].get("machine") for nb in report["notebooks"].values()}
+    where = first.get("machine") if len(machines) == 1 else "several machines"
     missing = [n for n in book_order() if n not in report["notebooks"]]
     parts = [
         "## What each chapter needs",
         "",
         f"Dry run at `{report['scale']}` on {first['cpu_count']} CPU cores "
-        f"({first['device']}); {report['wall_s'] / 60:.0f} minutes for the notebooks below "
-        "(each notebook's code version and date are in its section).",
+        f"({first['device']}, {where}); {report['wall_s'] / 60:.0f} minutes for the notebooks "
+        "below (each notebook's machine, code version and date are in its section).",
         "",
         markdown_table(chapter_rows(report)),
     ]
@@ -177,7 +179,8 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
             "",
             f"### {registry.chapter(name).title}",
             "",
-            f"Ran {ran['date']}, code `{ran['git']}`, {nb['wall_s']:.0f} s.",
+            f"Ran {ran['date']} on {ran.get('machine', 'an unrecorded machine')}, "
+            f"code `{ran['git']}`, {nb['wall_s']:.0f} s.",
             "",
         ]
         if nb["error"]:

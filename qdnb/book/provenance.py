@@ -31,12 +31,25 @@ def versions() -> dict[str, str]:
     return out
 
 
+def processor() -> str:
+    """The host's processor model (Linux's ``/proc/cpuinfo``; else ``platform``'s): XLA's
+    CPU code, and so timings and the last digits of results, differ by processor."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown processor"
+
+
 def device() -> str:
     import jax
 
     d = jax.devices()[0]
     kind = getattr(d, "device_kind", d)
-    return f"{d.platform}: {kind} x{jax.device_count()} ({os.cpu_count()} CPU cores)"
+    cores = f"{os.cpu_count()} CPU cores, {processor()}"
+    return f"{d.platform}: {kind} x{jax.device_count()} ({cores})"
 
 
 def devices() -> dict[str, Any]:
