@@ -429,3 +429,41 @@ def test_copies_sharing_their_state_count_only_their_working_memory_again(record
     shared, copied = report.project(es), report.project(seeds)
     assert shared["checkpoint_bytes"] == pytest.approx(copied["checkpoint_bytes"] / 100)
     assert shared["cpu_hours"] == pytest.approx(copied["cpu_hours"], rel=1.0)  # timed apart
+
+
+def test_the_flts_batches_are_cut_on_a_cpu_and_each_step_counts_for_the_whole(records):
+    """A paper step of the FLT (32 episodes of 128x128) takes minutes on two cores: a CPU
+    dry run trains and scores ``DRY_RUN_EPISODES`` episodes a batch, each step counted
+    ``batch / DRY_RUN_EPISODES`` times, the loops' lengths and the scores' shapes kept."""
+    from qdnb.chapters.ch5_flow_lenia import evaluate
+    from qdnb.models.lenia import flow_lenia as fl
+    from qdnb.models.lenia import flt
+
+    kept = flt.DRY_RUN_EPISODES
+    batch = 2 * kept
+    world = fl.FlowLeniaConfig(height=16, width=16, kernels=2, patch_size=5, steps=4)
+    cfg = flt.FLTConfig(
+        embed_dim=8, num_layers=1, num_heads=2, features=(4, 8), batch_size=batch, train_steps=50
+    )
+    system = fl.sample_system(jax.random.PRNGKey(1), world)
+    model = flt.make_model(world, cfg)
+    trained = flt.train(model, cfg, world, system, jax.random.PRNGKey(2), progress=False)
+    assert trained.episodes_seen == len(trained.losses) * kept
+    episodes = 2 * batch + 3
+    held = evaluate(
+        model, trained.params, world, system, trained.mean_frames, jax.random.PRNGKey(3),
+        episodes, batch,
+    )  # fmt: skip
+    a = held.errors["flt"]["A"]
+    assert a.shape == (episodes, world.steps)  # the episodes played, repeated
+    played = 2 * kept  # two batches: the rest repeat them
+    np.testing.assert_array_equal(a[played : 2 * played], a[:played])
+    cuts = [r for r in records() if r["kind"] == "cut"]
+    assert [(c["full"], c["kept"]) for c in cuts] == [(batch, kept), (batch, kept)]
+    training, scoring = [r for r in records() if r["kind"] == "loop"]
+    assert training["full_steps"] == 50 and training["repeats"] == 2
+    assert training["memory_factor"] == 2 and training["state_factor"] == 1
+    assert scoring["full_steps"] == 3 and scoring["repeats"] == 2
+    assert report.project(training)["cpu_hours"] == pytest.approx(
+        2 * (training["compile_s"] + 50 * training["seconds_per_step"]) / 3600
+    )

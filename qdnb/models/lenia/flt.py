@@ -380,6 +380,25 @@ def frame_errors(pred: jax.Array, truth: jax.Array) -> dict[str, jax.Array]:
     }
 
 
+# A paper step of the FLT (32 episodes of 128x128, 64 frames) takes minutes on two CPU
+# cores (358 s on an Intel Xeon, 157 s with compilation on an AMD EPYC; ours about twice
+# that, its pushforward's second pass): a batch's episodes are independent copies side by
+# side, so a dry run on a CPU runs this many of them and counts each step
+# ``batch / DRY_RUN_EPISODES`` times, as the ES's perturbations are
+# (``qdnb.chapters.ch3_evolution``).  A GPU runs the whole batch.  A step's time grows a
+# little faster than its batch (bench/results/flt_dryrun_cut.json, the Xeon: 32.5, 75 and
+# 358 s for 4, 8 and 32 episodes): 8 episodes project a full step 16 % short (4: 27 %).
+DRY_RUN_EPISODES = 8
+
+
+def dry_run_batch(what: str, full: int) -> int:
+    """``full``; in a dry run on a CPU, ``DRY_RUN_EPISODES`` (at least one episode per
+    device), the cut recorded as ``what`` (``qdnb.core.dryrun.count``)."""
+    if jax.default_backend() != "cpu":
+        return full
+    return dryrun.count(what, full, max(DRY_RUN_EPISODES, jax.local_device_count()))
+
+
 @dataclass(frozen=True)
 class TrainResult:
     params: Any
@@ -425,6 +444,7 @@ def train(
     optimizer = make_optimizer(cfg.learning_rate)
     opt_state = optimizer.init(params)
     step = make_train_step(model, optimizer, cfg.per_modality, cfg.noise, cfg.pushforward)
+    batch = dry_run_batch(f"{desc}'s episodes per batch (side by side)", cfg.batch_size)
     keyed = cfg.dropout > 0 or cfg.noise > 0  # a key for the step's randomness
 
     @jax.jit
@@ -432,7 +452,7 @@ def train(
         k_sim, k_drop = jax.random.split(key)
         # data-parallel over every local device, on CPU host devices too: the convolutions'
         # gradients gain from it (bench/scale_out.py), unlike the QDT's matmuls
-        episodes = fl.simulate_system(system, k_sim, world, cfg.batch_size, split=True)
+        episodes = fl.simulate_system(system, k_sim, world, batch, split=True)
         episodes = shard_batch(fl.frames(episodes))
         params, opt_state, loss = step(params, opt_state, episodes, k_drop if keyed else None)
         drift = jnp.max(fl.mass_drift(episodes[..., :1]))
@@ -469,30 +489,32 @@ def train(
         total=cfg.train_steps,
     )
     steps = dryrun.steps(desc, bar, full=cfg.train_steps)  # a dry run: the first steps
-    for i in steps:
-        began_step = time.perf_counter()
-        params, opt_state, frame_sum, loss, drift = one(
-            params, opt_state, frame_sum, jax.random.fold_in(k_train, i)
-        )
-        steps.step_done(loss)
-        if step_seconds is not None:
-            jax.block_until_ready(params)
-            step_seconds.append(time.perf_counter() - began_step)
-        losses.append(loss)
-        drifts.append(drift)
-        if i % 50 == 49 or i == cfg.train_steps - 1:
-            bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-50:]))):.4g}")
-        if (
-            max_seconds is not None
-            and float(loss) >= 0
-            and time.perf_counter() - start > max_seconds
-        ):
-            break  # float(loss) waits for the step, so the clock counts finished steps
-        if saver is not None and saver.due(i + 1 - start_step, last=i + 1 == cfg.train_steps):
-            state = (params, opt_state, frame_sum, jnp.stack(losses), jnp.stack(drifts))
-            saver.save(i + 1, state, final=i + 1 == cfg.train_steps)
+    # a dry run on a CPU steps a cut batch: each step stands for the whole batch's
+    with dryrun.repeats(cfg.batch_size / batch, side_by_side=True, shared_state=True):
+        for i in steps:
+            began_step = time.perf_counter()
+            params, opt_state, frame_sum, loss, drift = one(
+                params, opt_state, frame_sum, jax.random.fold_in(k_train, i)
+            )
+            steps.step_done(loss)
+            if step_seconds is not None:
+                jax.block_until_ready(params)
+                step_seconds.append(time.perf_counter() - began_step)
+            losses.append(loss)
+            drifts.append(drift)
+            if i % 50 == 49 or i == cfg.train_steps - 1:
+                bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-50:]))):.4g}")
+            if (
+                max_seconds is not None
+                and float(loss) >= 0
+                and time.perf_counter() - start > max_seconds
+            ):
+                break  # float(loss) waits for the step, so the clock counts finished steps
+            if saver is not None and saver.due(i + 1 - start_step, last=i + 1 == cfg.train_steps):
+                state = (params, opt_state, frame_sum, jnp.stack(losses), jnp.stack(drifts))
+                saver.save(i + 1, state, final=i + 1 == cfg.train_steps)
     bar.close()
-    seen = len(losses) * cfg.batch_size
+    seen = len(losses) * batch
     return TrainResult(
         params,
         np.asarray(jnp.stack(losses)),
