@@ -1,13 +1,21 @@
-"""Exact k-nearest-neighbour novelty on CPU: a full ``top_k`` against the
-blockwise ``k_smallest`` of ``qdnb.qd.novelty``, for the query count of one
-QD-PG iteration (100 critic batches of 256) and the archive sizes of `small`
-(2,000) and `paper` (10,000); and the chunk of queries ``NoveltyArchive.novelty``
-scores at a time, on the queries of one iteration of the thesis's coupling at
-`small` (4 diversity actors x 100 critic steps x 256 = 102,400) against a full
-archive of 10,000, one such set per device as QD-PG's seeds run.  Writes
+"""QD-PG's novelty rewards on CPU: brute force against the spatial index of
+``qdnb.qd.spatial``, on the archives and queries of a Table 3.2 Point-Maze run.
+
+QD-PG (``POINTMAZE_PAPER``, one seed, the index on) runs a few iterations; after
+iterations 5, 15 and 40 its archive and one iteration's queries (the state
+descriptors of 800 critic steps x 2 diversity actors x 256 sampled transitions) are
+scored both ways on one core's device, as a seed runs.  Per snapshot: seconds by
+brute force and by the index (its build, its first pass, the second try and brute
+force for the rest), the share of queries each pass leaves, and whether the two ways
+give the same bits.  Then the index's window widths (``WIDTHS``: the first pass's
+run of three cells, the second try's) are swept on the iteration-40 snapshot: the
+first pass fuses into one loop up to about 150 candidates a query and falls off a
+cliff beyond (60 x 3: 2.4 s), so the widths are chosen below that.  Writes
 ``bench/results/knn.json``.
 
-    python bench/knn.py [--repeats 5]
+    taskset -c 0 python bench/knn.py [--repeats 3]
+
+(``taskset -c 0``: one core, as each of two seeds side by side has.)
 """
 
 from __future__ import annotations
@@ -15,90 +23,123 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
 import jax
-import numpy as np
+import jax.numpy as jnp
 
-from qdnb.qd.novelty import k_smallest, pairwise_squared_distances
+from qdnb.book.provenance import device, git_sha
+from qdnb.book.registry import config
+from qdnb.chapters.ch3_qdpg import build_algorithms
+from qdnb.qd import spatial
+from qdnb.qd.novelty import NoveltyArchive, reduce_columns
+
+SNAPSHOTS = (5, 15, 40)
+WIDTH_SWEEP = ((24, 128), (36, 96), (36, 128), (36, 192), (48, 128), (48, 192))
 
 
-def best_time(fn, x, repeats: int) -> float:
-    jax.block_until_ready(fn(x))
+def best_time(fn, *args, repeats: int) -> float:
+    jax.block_until_ready(fn(*args))
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        jax.block_until_ready(fn(x))
+        jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
     return min(times)
 
 
-def chunk_sweep(repeats: int, queries: int = 102_400) -> dict[str, float]:
-    """Seconds to score ``queries`` per device against a full archive of 10,000, by chunk."""
-    from qdnb.core.sharding import over_seeds
-    from qdnb.qd.novelty import NoveltyArchive
-
-    n = len(jax.devices())
-    data = jax.random.normal(jax.random.PRNGKey(1), (10_000, 2)) * 0.3
-    archive = NoveltyArchive.create(10_000, 2).replace(
-        data=data, num_added=jax.numpy.asarray(10_000, jax.numpy.int32)
-    )
-    q = jax.random.uniform(jax.random.PRNGKey(0), (n, queries, 2), minval=-1, maxval=1)
+def snapshots() -> dict[int, tuple[NoveltyArchive, jax.Array]]:
+    """The archive and one iteration's diversity queries after each of ``SNAPSHOTS``."""
+    cfg = config("ch3_qdpg", "paper")
+    algo = build_algorithms(cfg, "pointmaze", methods=("QD-PG",))["QD-PG"]
+    task, n = cfg.pointmaze, cfg.pointmaze.num_actors
+    queries = task.num_critic_steps * (n // 2) * cfg.td3_batch_size
+    state, _ = jax.jit(algo.init)(jax.random.PRNGKey(0))
+    step = jax.jit(algo.step)
     out = {}
-    for chunk in (64, 128, 256, 1024):
-        score = lambda x, chunk=chunk: archive.novelty(x, 10, chunk=chunk)
-        out[str(chunk)] = best_time(jax.jit(over_seeds(jax.vmap(score), n, "seeds")), q, repeats)
-        print(f"chunk {chunk}: {out[str(chunk)]:.3f} s", flush=True)
+    for i in range(1, max(SNAPSHOTS) + 1):
+        state, _ = step(state)
+        if i in SNAPSHOTS:
+            rows = state.buffer.sample(jax.random.PRNGKey(i), queries)
+            out[i] = (state.archive, rows["state_descriptor"])
+            print(f"iteration {i}: archive {int(state.archive.size)}", flush=True)
     return out
+
+
+def passes(archive: NoveltyArchive, queries: jax.Array, repeats: int) -> dict:
+    """The index's parts, timed apart, and the share of queries each pass leaves."""
+    reduce = lambda columns: reduce_columns(columns, "mean")
+    build = jax.jit(spatial.GridIndex.build)
+    index = build(archive.data, archive.valid)
+    chunked = queries.reshape(-1, spatial.CHUNK, 2)
+    first = jax.jit(
+        lambda q: jax.lax.map(
+            lambda c: index.searched(c, 10, reduce, spatial.WIDTHS[0]), q
+        ).reshape(-1)
+    )
+    second = jax.jit(
+        lambda q, v: spatial.retried(q, v, index.searched, 10, reduce, spatial.WIDTHS[1])
+    )
+    after_first = first(chunked)
+    after_second = second(queries, after_first)
+    return {
+        "build_s": best_time(build, archive.data, archive.valid, repeats=repeats),
+        "first_pass_s": best_time(first, chunked, repeats=repeats),
+        "second_try_s": best_time(second, queries, after_first, repeats=repeats),
+        "refused_by_first_pass": float(jnp.mean(jnp.isnan(after_first))),
+        "refused_by_second_try": float(jnp.mean(jnp.isnan(after_second))),
+    }
+
+
+def compare(archive: NoveltyArchive, queries: jax.Array, repeats: int) -> dict:
+    brute = jax.jit(lambda q: archive.novelty(q, 10, search="brute"))
+    index = jax.jit(lambda q: archive.novelty(q, 10, search="index"))
+    start = time.perf_counter()
+    by_index = jax.block_until_ready(index(queries))
+    first_call = time.perf_counter() - start
+    by_brute = brute(queries)
+    return {
+        "archive_size": int(archive.size),
+        "queries": int(queries.shape[0]),
+        "brute_force_s": best_time(brute, queries, repeats=repeats),
+        "index_s": best_time(index, queries, repeats=repeats),
+        "index_first_call_s (compiles)": first_call,
+        "bit_equal_share": float(jnp.mean(by_index == by_brute)),
+        "max_relative_difference": float(
+            jnp.max(jnp.abs(by_index - by_brute) / jnp.maximum(by_brute, 1e-30))
+        ),
+        **passes(archive, queries, repeats),
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--queries", type=int, default=25_600)
-    parser.add_argument("--chunk", type=int, default=1024)
+    parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    k = 10
-    queries = jax.random.uniform(jax.random.PRNGKey(0), (args.queries, 2), minval=-1, maxval=1)
+    snaps = snapshots()
     rows = []
-    for size in (2_000, 10_000):
-        reference = jax.random.uniform(jax.random.PRNGKey(1), (size, 2), minval=-1, maxval=1)
-        ways = {
-            "top_k": lambda d: -jax.lax.top_k(-d, k)[0],
-            "k_smallest": lambda d: k_smallest(d, k),
-        }
-        timings, answers = {}, {}
-        for name, select in ways.items():
-            fn = jax.jit(
-                lambda q, select=select: jax.lax.map(
-                    lambda c: select(pairwise_squared_distances(c, reference)),
-                    q.reshape(-1, args.chunk, 2),
-                )
-            )
-            timings[name] = best_time(fn, queries, args.repeats)
-            answers[name] = np.asarray(fn(queries))
-        rows.append(
-            {
-                "archive_size": size,
-                "seconds": timings,
-                "k_smallest_over_top_k": timings["k_smallest"] / timings["top_k"],
-                "same_values": bool(np.allclose(answers["top_k"], answers["k_smallest"])),
-            }
-        )
-        print(rows[-1], flush=True)
-    chunks = chunk_sweep(args.repeats)
+    for it, (archive, queries) in snaps.items():
+        rows.append({"iteration": it, **compare(archive, queries, args.repeats)})
+        print(json.dumps(rows[-1]), flush=True)
+    sweep = []
+    archive, queries = snaps[max(SNAPSHOTS)]
+    chosen = spatial.WIDTHS
+    for widths in WIDTH_SWEEP:
+        spatial.WIDTHS = widths
+        index = jax.jit(lambda q: archive.novelty(q, 10, search="index"))
+        sweep.append({"widths": widths, "index_s": best_time(index, queries, repeats=args.repeats)})
+        print(json.dumps(sweep[-1]), flush=True)
+    spatial.WIDTHS = chosen
     out = {
-        "device": jax.devices()[0].platform,
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "queries": args.queries,
-        "chunk": args.chunk,
-        "k": k,
-        "repeats": args.repeats,
-        "rows": rows,
-        "novelty_chunk_seconds": chunks,
+        "device": device(),
+        "cores_used": len(os.sched_getaffinity(0)),
+        "commit": git_sha(),
+        "date": time.strftime("%Y-%m-%d"),
+        "k": 10,
+        "widths": chosen,
+        "snapshots": rows,
+        "width_sweep_on_iteration_40": sweep,
     }
     path = Path(__file__).parent / "results" / "knn.json"
     path.write_text(json.dumps(out, indent=1) + "\n")

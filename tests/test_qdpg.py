@@ -571,7 +571,7 @@ def test_the_thesis_coupling_trains_each_critic_with_the_actors_being_improved(m
         jax.random.split(jax.random.PRNGKey(5), 2)
     )
     diversity = jnp.array([False, False])
-    offspring, q, d = algo.coupled_updates(state, parents, diversity, jax.random.PRNGKey(6))
+    offspring, q, d, _ = algo.coupled_updates(state, parents, diversity, jax.random.PRNGKey(6))
 
     one = lambda t, i: jax.tree.map(lambda x: x[i], t)
     key = jax.random.PRNGKey(0)  # no target-policy noise: the key plays no part

@@ -201,10 +201,11 @@ def _last_write(line: str) -> str:
 
 
 # A tqdm bar (``pagecheck.PROGRESS_BAR``), a cursor move of interleaved bars, and the
-# checkpoint store's notices: terminal output, not the page's (the run's checkpoints are in
-# its summary.json and the page's opening box).
+# checkpoint store's and the loops' divergence notices: terminal output, not the page's (the
+# run's checkpoints are in its summary.json and the page's opening box; a diverged seed in
+# its results and the page's own report).
 _TERMINAL_ONLY = re.compile(
-    pagecheck.PROGRESS_BAR.pattern + r"|\x1b\[[0-9;]*[A-Za-z]|^checkpoints: "
+    pagecheck.PROGRESS_BAR.pattern + r"|\x1b\[[0-9;]*[A-Za-z]|^checkpoints: |^diverged: "
 )
 
 

@@ -29,6 +29,7 @@ compiled program: each step evaluates the waiting batch, inserts it, updates
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -37,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from qdnb.core import dryrun
+from qdnb.core import dryrun, health
 from qdnb.core.evaluation import Evaluation
 from qdnb.core.loops import scan_in_chunks
 from qdnb.core.sharding import over_seeds, seed_slots
@@ -278,9 +279,15 @@ def run_seeds(
         )  # fmt: skip
     env = algorithm.env
     low, high = env.descriptor_low, env.descriptor_high
+    names: list[str] = []  # the state's parts (qdnb.core.health), seen when tracing
 
     def record(state, track, ev):
-        out = dict(algorithm.metrics(state), env_steps=jnp.sum(ev.length))
+        names[:] = health.part_names(state)
+        out = dict(
+            algorithm.metrics(state),
+            env_steps=jnp.sum(ev.length),
+            nan_parts=health.nan_parts(state),
+        )
         if track_bins is not None:
             track = track.update(ev.descriptor, track_bins, low, high, target)
             out.update(coverage=track.coverage, min_distance=track.min_distance)
@@ -300,6 +307,7 @@ def run_seeds(
     # the seeds over the devices when they divide evenly, else each seed's population (or,
     # for an algorithm that prefers it, seeds padded up to a multiple of the devices)
     num_seeds, prefers = len(keys), getattr(algorithm, "split", "seeds")
+    stop = stopped_by_nan(stop, num_seeds, names, desc)
     slots = seed_slots(num_seeds, prefers)
     if slots > num_seeds:  # extra seeds, whose results are dropped
         extra = jax.random.split(jax.random.fold_in(keys[0], 0x5EED), slots - num_seeds)
@@ -351,6 +359,37 @@ def run_seeds(
         lambda f, h: jnp.concatenate([f[:, None], jnp.swapaxes(h, 0, 1)], axis=1), first, history
     )
     return mine(states), mine(tracks), mine(history)
+
+
+def stopped_by_nan(
+    stop: Callable[[dict[str, Any]], bool] | None,
+    num_seeds: int,
+    names: list[str],
+    desc: str | None,
+) -> Callable[[dict[str, Any]], bool]:
+    """``run_seeds``'s stop rule: ``stop``'s, or once every seed has diverged (a NaN in
+    its state, ``qdnb.core.health``); each seed that diverges is told on the terminal
+    as it does, with its iteration and the parts that hold the NaN."""
+    seen = np.zeros(num_seeds, bool)
+    done = [0]  # history entries seen so far (entry 0: the initial batch)
+
+    def rule(out: dict[str, Any]) -> bool:  # entries: iterations x seeds x ...
+        flags = np.asarray(out["nan_parts"])[:, :num_seeds]
+        for i, seed in zip(*np.nonzero(flags.any(axis=2))):
+            if not seen[seed]:
+                seen[seed] = True
+                parts = ", ".join(n for n, b in zip(names, flags[i, seed]) if b)
+                print(
+                    f"diverged: {desc or 'loop'}: seed {seed} went NaN at iteration "
+                    f"{done[0] + i} ({parts}); it is reported as diverged",
+                    file=sys.stderr,
+                    flush=True,
+                )
+        done[0] += flags.shape[0]
+        given = stop(out) if stop is not None else False  # called every chunk: it keeps state
+        return bool(given or seen.all())
+
+    return rule
 
 
 def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, **kwargs: Any) -> Any:

@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from qdnb.qd.spatial import GridIndex
+
 
 def pairwise_squared_distances(queries: jax.Array, reference: jax.Array) -> jax.Array:
     """Squared Euclidean distances, shape ``(queries, reference)``.
@@ -60,7 +62,14 @@ def block_size(m: int, k: int) -> int:
     return min(divisors, key=lambda b: abs(b - target)) if divisors else target
 
 
-REDUCTIONS = ("mean", "sum")
+# how the k nearest distances make a novelty: their mean (Eq. 2.5, Section 3.6.3), their
+# sum (Eq. 3.5 as printed), the mean of their squares (QDax's QD-PG scorer)
+REDUCTIONS = ("mean", "sum", "mean_squared")
+# How an archive answers many queries at once: "index" (an exact spatial index,
+# ``qdnb.qd.spatial``), "brute" (every distance), "auto" (the index from
+# ``INDEX_MIN_QUERIES`` queries on, where building it pays: bench/knn.py)
+SEARCHES = ("auto", "index", "brute")
+INDEX_MIN_QUERIES = 32_768
 
 
 def knn_novelty(
@@ -88,10 +97,24 @@ def knn_novelty(
     if exclude_self:
         q = queries.shape[0]
         d = d.at[jnp.arange(q), jnp.arange(q)].set(jnp.inf)
-    nearest = jnp.sqrt(k_smallest(d, k))
-    finite = jnp.isfinite(nearest)
-    count = jnp.sum(finite, axis=-1)
-    total = jnp.sum(jnp.where(finite, nearest, 0.0), axis=-1)
+    return reduce_nearest(k_smallest(d, k), reduction)
+
+
+def reduce_nearest(squared: jax.Array, reduction: str = "mean") -> jax.Array:
+    """Novelty from the ``k`` smallest squared distances of each query (``(n, k)``,
+    sorted, ``+inf`` where a neighbour is missing): ``reduce_columns`` of its columns."""
+    return reduce_columns([squared[..., j] for j in range(squared.shape[-1])], reduction)
+
+
+def reduce_columns(squared: list, reduction: str = "mean") -> jax.Array:
+    """Novelty from the ``k`` smallest squared distances of each query, given as ``k``
+    arrays: the mean (or sum) of the distances there are, or the mean of their squares
+    (``REDUCTIONS``); ``+inf`` with none.  Summed in order, one array at a time, so
+    that the spatial index's fused network and brute force add the same way."""
+    values = [v if reduction == "mean_squared" else jnp.sqrt(v) for v in squared]
+    finite = [jnp.isfinite(v) for v in values]
+    count = sum(f.astype(jnp.int32) for f in finite)
+    total = sum(jnp.where(f, v, 0.0) for f, v in zip(finite, values))
     score = total if reduction == "sum" else total / jnp.maximum(count, 1)
     return jnp.where(count > 0, score, jnp.inf)
 
@@ -121,23 +144,36 @@ class NoveltyArchive:
         return jnp.minimum(self.num_added, self.capacity)
 
     def novelty(
-        self, queries: jax.Array, k: int, chunk: int = 128, reduction: str = "mean"
+        self,
+        queries: jax.Array,
+        k: int,
+        chunk: int = 128,
+        reduction: str = "mean",
+        search: str = "auto",
     ) -> jax.Array:
         """Novelty of each query with respect to the archive (Eq. 2.5 / Eq. 3.5):
         the mean distance to its ``k`` nearest entries, or their sum
         (``reduction``, see ``knn_novelty``).
 
         ``queries`` may have any leading axes (QD-PG scores every batch of an
-        iteration at once); more than ``chunk`` queries are scored ``chunk`` at
-        a time, which bounds the distance matrix in memory and changes no value.
-        A chunk's distances to 10,000 entries (5 MB at 128) stay in the caches:
-        one iteration's 102,400 queries per device, on 2 cores with 2 devices,
-        took 0.48 s at 128 against 0.72 s at 1,024 (64: 0.47 s; ``bench/knn.py``).
+        iteration at once).  ``search`` (``SEARCHES``) picks how the neighbours are
+        found; both ways give the same values.  By brute force, more than ``chunk``
+        queries are scored ``chunk`` at a time, which bounds the distance matrix in
+        memory: a chunk's distances to 10,000 entries (5 MB at 128) stay in the
+        caches (``bench/knn.py``).
         """
-        score = lambda q: knn_novelty(q, self.data, k, self.valid, reduction=reduction)
+        if search not in SEARCHES:
+            raise ValueError(f"unknown search {search!r}; valid: {', '.join(SEARCHES)}")
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"unknown reduction {reduction!r}; valid: {', '.join(REDUCTIONS)}")
         lead, dim = queries.shape[:-1], queries.shape[-1]
         flat = queries.reshape(-1, dim)
         n = flat.shape[0]
+        if search == "index" or (search == "auto" and n >= INDEX_MIN_QUERIES):
+            index = GridIndex.build(self.data, self.valid)
+            reduce = lambda columns: reduce_columns(columns, reduction)
+            return index.novelty(flat, k, reduce).reshape(lead)
+        score = lambda q: knn_novelty(q, self.data, k, self.valid, reduction=reduction)
         if n <= chunk:
             return score(flat).reshape(lead)
         padded = jnp.pad(flat, ((0, (-n) % chunk), (0, 0))).reshape(-1, chunk, dim)

@@ -71,9 +71,10 @@ from flax import struct
 
 from qdnb.core.evaluation import Evaluation
 from qdnb.core.tree import concat, stack
+from qdnb.envs.rollout import evaluate_policies
 from qdnb.qd import repertoire as rep_lib
 from qdnb.qd.algorithms import PolicyMapElites
-from qdnb.qd.novelty import REDUCTIONS, NoveltyArchive
+from qdnb.qd.novelty import REDUCTIONS, SEARCHES, NoveltyArchive
 from qdnb.rl.buffer import ReplayBuffer
 from qdnb.rl.td3 import TD3, TD3Config, TD3State
 
@@ -114,6 +115,25 @@ class QDPGState:
     buffer: ReplayBuffer
     archive: NoveltyArchive
     key: jax.Array
+    # the last iteration's update statistics (``UPDATE_STATISTICS``), for the loop's history
+    updates: dict = struct.field(default_factory=dict)
+
+
+# What each iteration's updates record (the thesis's coupling; the greedy readings record
+# the critics' mean losses, the rest 0): each critic's mean loss (the sum of its twin
+# heads' mean squared TD errors) and the largest global norm of the gradient it applied,
+# and the largest global norm of an actor's policy gradient.  A divergence shows here first.
+UPDATE_STATISTICS = (
+    "critic_loss_q",
+    "critic_loss_d",
+    "critic_grad_norm_q",
+    "critic_grad_norm_d",
+    "actor_grad_norm",
+)
+
+
+def no_statistics() -> dict:
+    return {name: jnp.zeros(()) for name in UPDATE_STATISTICS}
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +152,10 @@ class QDPG(PolicyMapElites):
     archive_size: int = 10_000
     archive_threshold: float = 1e-4
     archive_k: int = 10
+    novelty_search: str = "auto"  # how the archive finds neighbours (NoveltyArchive.novelty)
+    # the standard deviation of Gaussian noise on the population's actions as it plays its
+    # episodes (0: the actors play deterministically, as QDax's QD-PG; TD3 collects with 0.1)
+    exploration_noise: float = 0.0
     collect_transitions: bool = True
 
     def __post_init__(self):
@@ -139,6 +163,7 @@ class QDPG(PolicyMapElites):
             ("update", self.update, UPDATES),
             ("coupling", self.coupling, COUPLINGS),
             ("novelty_reduction", self.novelty_reduction, REDUCTIONS),
+            ("novelty_search", self.novelty_search, SEARCHES),
         ):
             if value not in valid:
                 raise ValueError(f"unknown {name} {value!r}; valid: {', '.join(valid)}")
@@ -178,10 +203,20 @@ class QDPG(PolicyMapElites):
         greedy = len(self.critics_in_use) if self.coupling == "qdax" else 0
         return self.batch_size - greedy
 
+    def evaluate(self, params: Any, key: jax.Array, return_trajectory: bool = False):
+        """The population's episodes, with ``exploration_noise`` on their actions."""
+        return evaluate_policies(
+            self.env, self.network.apply, params, key, return_trajectory,
+            exploration_noise=self.exploration_noise,
+        )  # fmt: skip
+
     def novelty_reward(self, archive: NoveltyArchive, batch: dict) -> jax.Array:
         """Fresh diversity rewards of a replay batch (Eq. 3.5)."""
         return archive.novelty(
-            batch["state_descriptor"], self.archive_k, reduction=self.novelty_reduction
+            batch["state_descriptor"],
+            self.archive_k,
+            reduction=self.novelty_reduction,
+            search=self.novelty_search,
         )
 
     def critic_rewards(self, archive: NoveltyArchive, batch: dict, critic: str) -> jax.Array:
@@ -209,8 +244,9 @@ class QDPG(PolicyMapElites):
         archive = NoveltyArchive.create(self.archive_size, env.descriptor_size)
         buffer, archive = self._record(buffer, archive, ev)
         return QDPGState(
-            repertoire, self.td3.init(k_q), self.td3.init(k_d), buffer, archive, key
-        ), ev
+            repertoire, self.td3.init(k_q), self.td3.init(k_d), buffer, archive, key,
+            no_statistics(),
+        ), ev  # fmt: skip
 
     # ----- the thesis's coupling: each critic step uses the actor being improved -----
 
@@ -234,14 +270,14 @@ class QDPG(PolicyMapElites):
 
     def coupled_updates(
         self, state: QDPGState, parents: Any, diversity: jax.Array, key: jax.Array
-    ) -> tuple[Any, TD3State, TD3State]:
+    ) -> tuple[Any, TD3State, TD3State, dict]:
         """The thesis's coupling (module docstring): ``num_critic_steps`` critic
         steps, each a gradient per actor on its own replay batch with that actor
         (its target copy) as the TD3 target policy, averaged over the actors each
         critic drives; after every ``policy_delay`` of them, each actor takes a
         policy-gradient step against its critic (a fresh mutation optimiser per
-        actor) and its target copy moves by ``tau``.  Returns the offspring and the
-        two critics."""
+        actor) and its target copy moves by ``tau``.  Returns the offspring, the two
+        critics and the updates' statistics (``UPDATE_STATISTICS``)."""
         td3, cfg = self.td3, self.td3_config
         n, steps, delay = diversity.shape[0], self.num_critic_steps, cfg.policy_delay
         k_batch, k_noise = jax.random.split(key)
@@ -263,8 +299,16 @@ class QDPG(PolicyMapElites):
             batch, keys = inputs
             critics = pick(diversity, d.critic, q.critic)
             critic_targets = pick(diversity, d.critic_target, q.critic_target)
-            _, grads = jax.vmap(td3.critic_grads)(critics, critic_targets, targets, batch, keys)
-            return (moved(q, w_q, grads), moved(d, w_d, grads), actors, targets, opts), None
+            losses, grads = jax.vmap(td3.critic_grads)(
+                critics, critic_targets, targets, batch, keys
+            )
+            stats = (
+                jnp.dot(w_q, losses),
+                jnp.dot(w_d, losses),
+                optax.tree.norm(weighted_sum(w_q, grads)),
+                optax.tree.norm(weighted_sum(w_d, grads)),
+            )
+            return (moved(q, w_q, grads), moved(d, w_d, grads), actors, targets, opts), stats
 
         def actor_step(carry, obs):
             q, d, actors, targets, opts = carry
@@ -273,38 +317,49 @@ class QDPG(PolicyMapElites):
             updates, opts = jax.vmap(opt.update)(grads, opts)
             actors = optax.apply_updates(actors, updates)
             targets = jax.tree.map(lambda t, p: (1 - cfg.tau) * t + cfg.tau * p, targets, actors)
-            return q, d, actors, targets, opts
+            return (q, d, actors, targets, opts), jnp.max(jax.vmap(optax.tree.norm)(grads))
 
         def block(carry, inputs):
-            carry, _ = jax.lax.scan(critic_step, carry, inputs)
-            return actor_step(carry, inputs[0]["obs"][-1]), None
+            carry, stats = jax.lax.scan(critic_step, carry, inputs)
+            carry, actor_norm = actor_step(carry, inputs[0]["obs"][-1])
+            return carry, (stats, actor_norm)
 
         blocks = jax.tree.map(
             lambda x: x.reshape((steps // delay, delay) + x.shape[1:]),
             (batches, jax.random.split(k_noise, (steps, n))),
         )
         carry = (state.q_critic, state.d_critic, parents, parents, jax.vmap(opt.init)(parents))
-        (q, d, offspring, _, _), _ = jax.lax.scan(block, carry, blocks)
-        return offspring, q, d
+        (q, d, offspring, _, _), ((loss_q, loss_d, norm_q, norm_d), norm_a) = jax.lax.scan(
+            block, carry, blocks
+        )
+        stats = dict(
+            critic_loss_q=jnp.mean(loss_q),
+            critic_loss_d=jnp.mean(loss_d),
+            critic_grad_norm_q=jnp.max(norm_q),
+            critic_grad_norm_d=jnp.max(norm_d),
+            actor_grad_norm=jnp.max(norm_a),
+        )
+        return offspring, q, d, stats
 
     # ----- the greedy couplings: critics trained against their own greedy actors -----
 
-    def train_critics(self, state: QDPGState, key: jax.Array) -> tuple[TD3State, TD3State]:
+    def train_critics(self, state: QDPGState, key: jax.Array) -> tuple[TD3State, TD3State, dict]:
         """Train the critics the variant uses for ``num_critic_steps`` steps each,
-        with their own greedy actors (the others stay as they are)."""
+        with their own greedy actors (the others stay as they are); and the
+        statistics of ``UPDATE_STATISTICS`` they give (their mean losses)."""
         td3, k_q, k_d = self.td3, *jax.random.split(key)
         rewards = lambda critic: lambda batch: self.critic_rewards(state.archive, batch, critic)
-        q_critic, d_critic = state.q_critic, state.d_critic
+        q_critic, d_critic, stats = state.q_critic, state.d_critic, no_statistics()
         if "q" in self.critics_in_use:
             kind = "sum" if self.update == "sum" else "quality"
-            q_critic, _ = td3.train_critic(
+            q_critic, stats["critic_loss_q"] = td3.train_critic(
                 q_critic, state.buffer, k_q, self.num_critic_steps, rewards(kind)
             )
         if "d" in self.critics_in_use:
-            d_critic, _ = td3.train_critic(
+            d_critic, stats["critic_loss_d"] = td3.train_critic(
                 d_critic, state.buffer, k_d, self.num_critic_steps, rewards("diversity")
             )
-        return q_critic, d_critic
+        return q_critic, d_critic, stats
 
     def mutate(self, state: QDPGState, parents: Any, diversity: jax.Array, key: jax.Array) -> Any:
         """``num_pg_steps`` TD3 actor steps for every parent, each against the
@@ -328,15 +383,17 @@ class QDPG(PolicyMapElites):
         parents = rep_lib.sample(state.repertoire, k_sel, n)
         diversity = update_kinds(k_kind, n, self.update)
         if self.coupling == "thesis":
-            offspring, q_critic, d_critic = self.coupled_updates(state, parents, diversity, k_pg)
+            offspring, q_critic, d_critic, stats = self.coupled_updates(
+                state, parents, diversity, k_pg
+            )
         else:
             offspring = self.mutate(state, parents, diversity, k_pg)
             if self.coupling == "qdax":  # emitted before the critics train, as QDax's emitters
                 offspring = concat(offspring, self.greedy_actors(state))
-            q_critic, d_critic = self.train_critics(state, k_critic)
+            q_critic, d_critic, stats = self.train_critics(state, k_critic)
         repertoire, ev = self.evaluate_and_insert(state.repertoire, offspring, k_eval)
         buffer, archive = self._record(state.buffer, state.archive, ev)
-        return QDPGState(repertoire, q_critic, d_critic, buffer, archive, key), ev
+        return QDPGState(repertoire, q_critic, d_critic, buffer, archive, key, stats), ev
 
     def metrics(self, state: QDPGState) -> dict[str, jax.Array]:
-        return {**super().metrics(state), "archive_size": state.archive.size}
+        return {**super().metrics(state), "archive_size": state.archive.size, **state.updates}
