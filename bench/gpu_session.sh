@@ -2,20 +2,26 @@
 # What a session lent an H100/H200 for about ten minutes runs at once, in order:
 #
 #   1. the environment check: devices, package versions, the deterministic-ops flag;
-#   2. the primer at `paper`, published as an archive, unless data/published holds it
+#   2. Chapter 3's Point-Maze at `paper` (bench/ch3_pointmaze_paper.py: five seeds side by
+#      side, sized by its loops' first iterations at the thesis's shapes: QD-PG and TD3,
+#      and the other methods while they fit POINTMAZE_S, 330 s), unless
+#      data/published/paper/ch3_pointmaze/ holds it: commit the JSON it writes there, the
+#      Chapter 3 page shows it as a published run;
+#   3. the primer at `paper`, published as an archive, unless data/published holds it
 #      (run on an H100 on 2026-12-05: 84 s, committed);
-#   3. the dry run at `paper` (python -m qdnb dryrun) of each notebook no GPU dry run in
+#   4. the dry run at `paper` (python -m qdnb dryrun) of each notebook no GPU dry run in
 #      bench/results/*_dryrun_gpu*.json has finished (DRYRUN_NOTEBOOKS overrides), one step
 #      of at most DRYRUN_STEP_S (240) seconds each;
-#   4. bench/scale_out.py --real: every stage's rate on the GPU's own devices;
-#   5. the dry runs' report rebuilt from their records: a notebook a step's limit stopped
+#   5. bench/scale_out.py --real: every stage's rate on the GPU's own devices;
+#   6. the dry runs' report rebuilt from their records: a notebook a step's limit stopped
 #      is reported "cut off", with the loops it reached (their GPU rates count).
 #
 # Everything it writes goes under one folder, OUT (the first argument, else $OUT, else
-# bench/results/gpu_session/): log.txt, environment.json, the published archive,
+# bench/results/gpu_session/): log.txt, environment.json, pointmaze-paper.json (copy it to
+# data/published/paper/ch3_pointmaze/), the published archive,
 # scale_out_gpu.json, paper_dryrun_gpu.json (copy it to bench/results/ under a name ending
 # _dryrun_gpu.json; the CPU dry run's report then gets its GPU hours with
-# python -m qdnb dryrun all --report-only).  SESSION_S (520) bounds steps 1-4 (the device
+# python -m qdnb dryrun all --report-only).  SESSION_S (520) bounds steps 1-5 (the device
 # call's 600 s, less the machine's start and step 5): each step's timeout is cut to what is
 # left.  A step that fails is logged and the next one still runs.
 #
@@ -111,6 +117,15 @@ info = {
 print(json.dumps(info, indent=1))
 json.dump(info, open(sys.argv[1], "w"), indent=1)
 EOF
+
+POINTMAZE=data/published/paper/ch3_pointmaze/pointmaze-paper.json  # committed once run
+if [ -e "$POINTMAZE" ]; then
+    echo "── Point-Maze at paper is already published ($POINTMAZE): not run again" | tee -a "$LOG"
+else
+    # its budget: POINTMAZE_S less the sizing's own time; the step's limit leaves it 60 s more
+    step "ch3 Point-Maze at paper" $((${POINTMAZE_S:-330} + 60)) "$PY" \
+        bench/ch3_pointmaze_paper.py --budget-s "${POINTMAZE_S:-330}" --out "$OUT/pointmaze-paper.json"
+fi
 
 ARCHIVE="$OUT/paper-ch2_primer.tar.gz"
 KEPT=data/published/paper/ch2_primer/ch2_primer-paper.tar.gz  # a session's run, committed

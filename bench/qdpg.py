@@ -6,8 +6,8 @@ by brute force (before) and from the spatial index (after), in one run.  Writes
     python bench/qdpg.py [--scales paper small] [--iterations 30]
 
 Per scale and way: one seed is warmed up until its archive is full, its buffer
-set to the size it has mid-run, and each part of an iteration timed as one jitted
-function on that state (one device, as each of the seeds run side by side has):
+filled to the size it has mid-run (with copies of its transitions), and each part of an
+iteration timed as one jitted function on that state (one seed alone on the machine):
 
 - ``evaluation``: the offspring's episodes, their insertion in the grid, the
   buffer's writes and the archive's one-by-one insertion scan;
@@ -57,8 +57,16 @@ def parts(cfg, algo) -> dict[str, float]:
     step = jax.jit(algo.step)
     while int(state.archive.num_added) < task.archive_size:  # an archive as full as mid-run
         state, _ = step(state)
+    # the buffer at its mid-run size, filled with copies of the transitions it has (slots
+    # of zeros would put most sampled states at the origin, which flatters brute force's
+    # rival: the index's cost depends on where the states are)
     mid_run = min(state.buffer.capacity, task.num_steps // 2)
-    state = state.replace(buffer=state.buffer.replace(size=jnp.asarray(mid_run, jnp.int32)))
+    have = int(state.buffer.size)
+    rows = jnp.resize(state.buffer.storage[:have], (mid_run, state.buffer.storage.shape[1]))
+    storage = state.buffer.storage.at[:mid_run].set(rows)
+    state = state.replace(
+        buffer=state.buffer.replace(storage=storage, size=jnp.asarray(mid_run, jnp.int32))
+    )
     key = jax.random.PRNGKey(1)
     n, steps, delay = algo.num_mutations, task.num_critic_steps, cfg.policy_delay
     parents = jax.tree.map(lambda x: x[:n], state.repertoire.genotypes)

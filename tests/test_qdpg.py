@@ -268,6 +268,11 @@ def test_configs_and_helpers():
         paper.pointmaze.num_critic_steps == 4 * 200 and paper.antmaze.num_pg_steps == 300
     )  # ratio x length
     assert paper.pointmaze.optimizer == "sgd" and paper.antmaze.bins == 7
+    assert paper.pointmaze.num_pg_steps == 400  # a mutation's steps: the thesis coupling's 800 / 2
+    # small: Table 3.2 whole on Point-Maze, fewer environment steps (its rule: the notebook)
+    small = config("ch3_qdpg", "small")
+    assert dataclasses.replace(small.pointmaze, num_steps=1_000_000) == paper.pointmaze
+    assert small.seeds("pointmaze", "QD-PG") >= 4
     with pytest.raises(ValueError, match="less than one iteration"):
         dataclasses.replace(paper, pointmaze=dataclasses.replace(paper.pointmaze, num_steps=100))
     with pytest.raises(ValueError, match="unknown methods"):
@@ -785,3 +790,30 @@ def test_the_coupling_ab_runs_its_variants_picks_by_its_rule_and_resumes(tmp_pat
     assert ab.pick(fake) == "c-qdax"  # a tie on the exit: the better mean
     fake["b-thesis"]["reached_exit"] = 2
     assert ab.pick(fake) == "b-thesis"
+
+
+def test_each_iteration_records_its_updates_statistics(maze):
+    from qdnb.qd.qdpg import UPDATE_STATISTICS
+
+    for coupling in ("thesis", "greedy"):
+        algo = dataclasses.replace(small_qdpg(maze), coupling=coupling)
+        state, _ = algo.init(jax.random.PRNGKey(0))
+        assert all(float(state.updates[k]) == 0.0 for k in UPDATE_STATISTICS)
+        state, _ = algo.step(state)
+        stats = {k: float(v) for k, v in algo.metrics(state).items() if k in UPDATE_STATISTICS}
+        assert set(stats) == set(UPDATE_STATISTICS)
+        assert stats["critic_loss_q"] > 0 and stats["critic_loss_d"] > 0
+        norms = [stats[k] for k in ("critic_grad_norm_q", "critic_grad_norm_d", "actor_grad_norm")]
+        # the thesis's coupling measures its gradients; the greedy readings their losses only
+        assert all(n > 0 for n in norms) if coupling == "thesis" else all(n == 0 for n in norms)
+
+
+def test_the_population_plays_with_exploration_noise_only_when_asked(maze):
+    algo = small_qdpg(maze)
+    params = algo.random_policies(jax.random.PRNGKey(1))
+    key = jax.random.PRNGKey(2)
+    plain = evaluate_policies(maze, algo.network.apply, params, key)
+    quiet = algo.evaluate(params, key)
+    np.testing.assert_array_equal(quiet.descriptor, plain.descriptor)  # the default plays as before
+    noisy = dataclasses.replace(algo, exploration_noise=0.1).evaluate(params, key)
+    assert not np.allclose(noisy.descriptor, plain.descriptor)

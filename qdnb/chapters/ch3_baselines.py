@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import jax
-import numpy as np
 
 from qdnb.chapters.ch3_qdpg import (
     ENVIRONMENTS,
@@ -25,6 +24,7 @@ from qdnb.chapters.ch3_qdpg import (
     QDPGConfig,
     beats,
     build_algorithms,
+    finite_mean,
     load_or_recompute_qdpg,
     method_summaries,
     per_seed,
@@ -303,10 +303,9 @@ def final_table(result: Result) -> dict[str, dict[str, str]]:
     rows: dict[str, dict[str, str]] = {}
     for env_name in ENVIRONMENTS:
         for name, r in result.methods(env_name).items():
-            perf = r.final_performance
             row = rows.setdefault(name, {})
-            row[f"{env_name} performance"] = f"{perf.mean():.1f} ± {perf.std():.1f}"
-            row[f"{env_name} coverage"] = f"{np.mean(r.coverage):.2f}"
+            row[f"{env_name} performance"] = r.performance_text()
+            row[f"{env_name} coverage"] = f"{finite_mean(r.coverage):.2f}"
     return rows
 
 

@@ -31,6 +31,7 @@ from qdnb.chapters.ch3_qdpg import (
     EnvironmentResult,
     MethodResult,
     QDPGConfig,
+    finite_mean,
     load_or_recompute_qdpg,
     run_environment,
 )
@@ -244,8 +245,10 @@ def summary_results(cfg: EvolutionConfig, result: Result) -> dict[str, Any]:
             s = steps_to_goal(env_name, r)
             out[env_name][name] = {
                 "ran": True,
-                "final_performance": float(r.final_performance.mean()),
-                "final_performance_per_seed": [float(v) for v in r.final_performance],
+                "final_performance": finite_mean(r.final_performance),
+                "final_performance_per_seed": [
+                    None if np.isnan(v) else float(v) for v in r.final_performance
+                ],
                 "steps_to_goal": None if not np.isfinite(mean_steps(s)) else mean_steps(s),
                 "steps_to_goal_per_seed": [None if not np.isfinite(v) else float(v) for v in s],
                 "ratio_to_qdpg": ratios[name],

@@ -15,6 +15,7 @@ best solution of the grid; for TD3 it is the greedy episode of its actor.
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.core import claims as claim_records
-from qdnb.core import paths
+from qdnb.core import health, paths
 from qdnb.core.config import config_hash
 from qdnb.core.evaluation import Algorithm
 from qdnb.core.io import load_arrays, load_summary, save_arrays
@@ -63,10 +64,11 @@ class QDPGTask:
     iteration each critic in use takes ``num_critic_steps`` TD3 steps; with the
     thesis's coupling (QD-PG and its ablations) each actor takes a step after
     every ``policy_delay`` of them, and ``num_pg_steps`` is the actor steps of
-    the methods whose critics train apart (PGA-ME, and QD-PG's other readings in
-    ``bench/qdpg_coupling.py``); at ``paper`` scale both are Table 3.2's
+    the methods whose critics train apart (PGA-ME, and QD-PG's greedy readings in
+    ``bench/qdpg_ab.py``); at ``paper`` scale the critic steps are Table 3.2's
     gradient-steps ratio times the episode length (4 x 200 on Point-Maze,
-    0.1 x 3000 on the ants).  ``learning_rate`` drives the critics and their
+    0.1 x 3000 on the ants) and, on Point-Maze, the mutations' steps half of them,
+    as the thesis's coupling gives its actors.  ``learning_rate`` drives the critics and their
     greedy actors, ``mutation_learning_rate`` the policy-gradient mutations of
     the population (Table 3.2 gives one rate for both; QDax uses 3e-4 and
     1e-3).  The state-descriptor archive admits a state whose mean distance to
@@ -105,7 +107,10 @@ POINTMAZE_PAPER = QDPGTask(
     learning_rate=6e-3,
     buffer_size=1_000_000,
     num_critic_steps=800,
-    num_pg_steps=800,
+    # a mutation's policy-gradient steps where the critics train apart (PGA-ME, QD-PG's
+    # greedy readings): the thesis's coupling's 800 // 2, so that every method's mutation
+    # takes the same 400 steps
+    num_pg_steps=400,
     archive_threshold=1e-4,
     mutation_learning_rate=6e-3,
 )
@@ -425,6 +430,9 @@ def final_grid(state: Any) -> dict[str, np.ndarray] | None:
 
 
 ANTMAZE_SOLVED = -10.0  # Table 3.3: Ant-Maze is solved when the best reward exceeds this
+# bench/qdpg_ab.py's rule: a reading of QD-PG exits Point-Maze's trap when this many of its 4
+# seeds reach the exit zone within 10^6 steps (a diverged seed does not)
+READING_EXITS_ON = 3
 
 
 @dataclass(frozen=True)
@@ -436,7 +444,11 @@ class MethodResult:
     ``grid`` the final MAP-Elites grid (``None`` for TD3); ``final_performance``
     Table 3.4's performance at the end; ``coverage`` the grid's final coverage;
     ``cumulative_steps`` the environment steps after each iteration;
-    ``steady_seconds_per_iteration`` the median compiled chunk's time."""
+    ``steady_seconds_per_iteration`` the median compiled chunk's time; ``diverged`` per
+    seed where it went NaN (``qdnb.core.health``; ``None``: it stayed finite).  A diverged
+    seed's final performance and coverage are NaN: its numbers mean nothing, and every
+    mean and count of the page leaves it out (``nanmean``; "most seeds" counts it as a
+    failure)."""
 
     history: dict[str, np.ndarray]
     grid: dict[str, Any] | None
@@ -446,6 +458,22 @@ class MethodResult:
     cumulative_steps: np.ndarray
     seconds: float
     steady_seconds_per_iteration: float
+    diverged: tuple[health.Divergence | None, ...] = ()
+
+    @property
+    def kept(self) -> np.ndarray:
+        """Per seed, whether it stayed finite (is counted in means)."""
+        n = len(self.final_performance)
+        return np.array([i >= len(self.diverged) or self.diverged[i] is None for i in range(n)])
+
+    def performance_text(self, digits: int = 1) -> str:
+        """``mean ± std`` of the final performance over the seeds that stayed finite, and
+        how many diverged."""
+        return mean_text(self.final_performance, digits, self.num_diverged)
+
+    @property
+    def num_diverged(self) -> int:
+        return int(np.sum(~self.kept))
 
     @cached_property
     def exit_steps(self) -> np.ndarray:
@@ -534,21 +562,25 @@ def run_method(
     seconds = time.perf_counter() - start
     steps = np.cumsum(history["env_steps"], axis=1)
     grid = final_grid(states)
+    diverged = tuple(health.divergences(history["nan_parts"], health.part_names(states)))
+    lost = np.array([d is not None for d in diverged])
+    coverage = (
+        reachable_coverage(grid["fitnesses"] > -np.inf, env_name, env, task.bins)
+        if grid is not None
+        else grid_coverage(history["descriptors"], env, task.bins, env_name)
+    )
     return MethodResult(
         history=history,
         grid=grid,
-        final_performance=history["max_fitness"][:, -1],
-        coverage=(
-            reachable_coverage(grid["fitnesses"] > -np.inf, env_name, env, task.bins)
-            if grid is not None
-            else grid_coverage(history["descriptors"], env, task.bins, env_name)
-        ),
+        final_performance=np.where(lost, np.nan, history["max_fitness"][:, -1]),
+        coverage=np.where(lost, np.nan, coverage),
         env_steps=steps[:, -1],
         cumulative_steps=steps,
         seconds=seconds,
         steady_seconds_per_iteration=steady_rate(
             chunks, cfg.chunk_size, seconds / task.num_iterations
         ),
+        diverged=diverged,
     )
 
 
@@ -649,17 +681,41 @@ def steps_to_exit(result: MethodResult) -> np.ndarray:
 # ----- the chapter's claims and summary -----
 
 
+def finite_mean(values: np.ndarray) -> float:
+    """The mean over the seeds that stayed finite (a diverged seed is NaN); NaN if none did."""
+    finite = np.asarray(values, float)[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else float("nan")
+
+
+def mean_text(values: np.ndarray, digits: int = 1, diverged: int | None = None) -> str:
+    """``mean ± std`` over the finite seeds (``± std`` only with several), and how many
+    diverged (``diverged``, or the NaN entries)."""
+    v = np.asarray(values, float)
+    finite = v[np.isfinite(v)]
+    lost = int(np.sum(np.isnan(v))) if diverged is None else diverged
+    if not finite.size:
+        return "diverged" if lost else "n/a"
+    text = f"{finite.mean():.{digits}f}" + (
+        f" ± {finite.std():.{digits}f}" if finite.size > 1 else ""
+    )
+    return text + (f" ({lost} of {len(v)} seeds diverged)" if lost else "")
+
+
 def beats(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether the per-seed values ``a`` beat ``b``: on the mean over seeds, and on
-    most of the seeds of ``a`` (each against the mean of ``b``)."""
-    target = float(np.mean(b))
-    return bool(np.mean(a) > target and np.mean(np.asarray(a) > target) > 0.5)
+    most of the seeds of ``a`` (each against the mean of ``b``).  Diverged seeds (NaN)
+    are in no mean, and count as seeds of ``a`` that do not beat it."""
+    target = finite_mean(b)
+    a = np.asarray(a, float)
+    return bool(finite_mean(a) > target and np.mean(np.where(np.isnan(a), False, a > target)) > 0.5)
 
 
 def per_seed(p: np.ndarray) -> str:
-    """A mean, and its seeds when there are several."""
-    seeds = f" (seeds: {', '.join(f'{v:.1f}' for v in p)})" if len(p) > 1 else ""
-    return f"{np.mean(p):.1f}{seeds}"
+    """A mean over the finite seeds, and every seed when there are several ("diverged"
+    for one that went NaN)."""
+    each = ", ".join("diverged" if np.isnan(v) else f"{v:.1f}" for v in p)
+    seeds = f" (seeds: {each})" if len(p) > 1 else ""
+    return f"{finite_mean(p):.1f}{seeds}"
 
 
 # the stable names of ``claims``'s rows, in order (the book's scorecard matches scales by them)
@@ -671,7 +727,7 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
     holds on the mean over seeds and on most of the seeds of the method it is about."""
     pm = results_by_env["pointmaze"].methods
     perf = lambda name: pm[name].final_performance
-    cov = lambda name: float(pm[name].coverage.mean())
+    cov = lambda name: finite_mean(pm[name].coverage)
 
     reached = pm["QD-PG"].reached_exit
     return [
@@ -707,14 +763,21 @@ def method_summaries(
     for env_name, res in results_by_env.items():
         out[env_name] = {}
         for name, r in res.methods.items():
+            kept = r.final_performance[r.kept]
             entry = {
                 "ran": True,
-                "final_performance": float(r.final_performance.mean()),
-                "final_performance_std": float(r.final_performance.std()),
-                "final_performance_per_seed": [float(v) for v in r.final_performance],
-                "coverage": float(r.coverage.mean()),
+                "final_performance": finite_mean(r.final_performance),
+                "final_performance_std": float(kept.std()) if kept.size else None,
+                "final_performance_per_seed": [
+                    None if np.isnan(v) else float(v) for v in r.final_performance
+                ],
+                "coverage": finite_mean(r.coverage),
                 "env_steps": float(r.env_steps.mean()),
                 "run_seconds": round(r.seconds, 1),
+                "diverged": [
+                    None if d is None else {"iteration": d.iteration, "parts": list(d.parts)}
+                    for d in r.diverged
+                ],
             }
             if env_name == "pointmaze":
                 entry["reached_goal"] = bool(r.reached_exit.any())
@@ -892,6 +955,8 @@ def save_method_result(path, digest: str, r: MethodResult):
         cumulative_steps=r.cumulative_steps,
         seconds=r.seconds,
         steady_seconds_per_iteration=r.steady_seconds_per_iteration,
+        diverged_iteration=np.array([-1 if d is None else d.iteration for d in r.diverged]),
+        diverged_parts=np.array(["" if d is None else ",".join(d.parts) for d in r.diverged]),
     )
 
 
@@ -911,6 +976,10 @@ def load_method_result(path, digest: str) -> MethodResult | None:
         cumulative_steps=a["cumulative_steps"],
         seconds=float(a["seconds"]),
         steady_seconds_per_iteration=float(a["steady_seconds_per_iteration"]),
+        diverged=tuple(
+            None if i < 0 else health.Divergence(int(i), tuple(str(p).split(",")))
+            for i, p in zip(a.get("diverged_iteration", []), a.get("diverged_parts", []))
+        ),
     )
 
 
@@ -967,6 +1036,9 @@ def load_or_recompute_qdpg(
     return results, status
 
 
+# small's Point-Maze environment steps (bench/results/ch3_small_budget.json, chosen_steps)
+SMALL_POINTMAZE_STEPS = 48_000
+
 # The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
 SCALES = {
     "tiny": QDPGConfig(
@@ -990,29 +1062,17 @@ SCALES = {
         antmaze=ANT_TINY,
         anttrap=ANT_TINY,
     ),
-    # small Point-Maze: Table 3.2's networks, minibatch, K, grid and archive (threshold 1e-4, 10,000
-    # FIFO slots), with N = 8 actors per iteration: bench/qdpg_sweep.py's pick, variant
-    # "table-3.2+actors-8" (round 2); 100 critic steps per iteration (50 actor steps per mutation
-    # in the thesis's coupling) and Adam at QDax's rates per role; the largest equal budget for six
-    # methods, in steps of 1e5, that fits the notebook's time on 2 cores (about 15 min): 3e5 took
-    # 806 s with every core (issue 35; the notebook's small-rule cell); QD-PG on Point-Maze on 4
-    # seeds, the other methods on 2 (seed-split methods: a second seed costs no wall time).
+    # small Point-Maze: Table 3.2 whole (N = 4 actors, 800 critic steps an iteration, 400
+    # policy-gradient steps a mutation, SGD at 6e-3, networks, archive, grid) but for its
+    # environment steps: the largest multiple of 16,000 for which the page takes at most 15
+    # minutes on a 2-core CPU (bench/ch3_small_budget.py, its rule and measurements); QD-PG on
+    # Point-Maze on 4 seeds (two per core), the other methods on 2.
     "small": QDPGConfig(
         num_seeds=2,
         chunk_size=10,
         ant_methods=("QD-PG", "TD3"),
         pointmaze_qdpg_seeds=4,
-        pointmaze=dataclasses.replace(
-            POINTMAZE_PAPER,
-            num_steps=300_000,
-            num_actors=8,
-            optimizer="adam",
-            learning_rate=3e-4,
-            mutation_learning_rate=1e-3,
-            buffer_size=1_000_000,
-            num_critic_steps=100,
-            num_pg_steps=100,
-        ),
+        pointmaze=dataclasses.replace(POINTMAZE_PAPER, num_steps=SMALL_POINTMAZE_STEPS),
         antmaze=ANT_SMALL,
         anttrap=ANT_SMALL,
     ),
@@ -1024,3 +1084,133 @@ SCALES = {
         anttrap=dataclasses.replace(ANT_PAPER, episode_length=1000),
     ),
 }
+
+
+# ----- the readings at Table 3.2's budget, the peer, the GPU run (computed outside the page) -----
+
+AB_RESULTS = paths.ROOT / "bench" / "results" / "qdpg_ab.json"
+PEER_RESULTS = paths.ROOT / "bench" / "results" / "qdax_qdpg.json"
+PUBLISHED_POINTMAZE = paths.DATA / "published" / "paper" / "ch3_pointmaze" / "pointmaze-paper.json"
+# the A/B's variants as the page names them (bench/qdpg_ab.py's VARIANTS, in its order)
+READINGS = {
+    "thesis-adam": "QD-PG, Adam (the A/B's base)",
+    "sum": "Eq. 3.5's sum of the K distances",
+    "thesis-sgd": "QD-PG, SGD 6e-3 (Table 3.2)",
+    "qdax-novelty": "QDax's novelty (mean squared distance, K = 5)",
+    "qdax-greedy": "QDax's greedy actors, played",
+    "exploration-noise": "the population plays with noise 0.1",
+}
+
+
+def read_json(path) -> dict | None:
+    """A results file computed outside the page, or ``None`` if it is not there."""
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _steps(values: list) -> str:
+    hits = [v for v in values if v is not None]
+    return ", ".join(f"{v:.2g}" for v in hits) or "never"
+
+
+def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
+    """The A/B's table: per variant run so far (and QDax's own QD-PG), how many seeds
+    reached the exit zone and when, the final performance, where the episodes ended,
+    coverage, NaN and wall time; a diverged seed is in no mean."""
+    rows = []
+    for variant, label in READINGS.items():
+        mine = [r for r in ab.get("rows", []) if r["variant"] == variant]
+        if not mine:
+            continue
+        final = np.array([np.nan if r["final_performance"] is None else r["final_performance"]
+                          for r in mine])  # fmt: skip
+        lost = [r for r in mine if r["diverged"]]
+        rows.append(
+            {
+                "reading": label,
+                "seeds in the exit zone": f"{sum(r['reached_exit'] for r in mine)}/{len(mine)}",
+                "steps to the exit zone": _steps([r["steps_to_exit"] for r in mine]),
+                "final performance": mean_text(final),
+                "episodes ending above the upper wall": (
+                    f"{np.mean([r['share_above_upper_wall'] for r in mine]):.1%}"
+                ),
+                "coverage": f"{finite_mean([r['coverage'] or np.nan for r in mine]):.2f}",
+                "diverged (iteration)": ", ".join(str(r["diverged"]["iteration"]) for r in lost)
+                or "none",
+                "minutes a pair of seeds": (
+                    f"{np.mean([r['pair_wall_seconds'] for r in mine]) / 60:.0f}"
+                ),
+            }
+        )
+    if peer and peer.get("rows"):
+        p = peer["rows"]
+        rows.append(
+            {
+                "reading": "QDax 0.5.0's own QD-PG (its example's settings)",
+                "seeds in the exit zone": f"{sum(r['reached_exit'] for r in p)}/{len(p)}",
+                "steps to the exit zone": _steps([r["steps_to_exit"] for r in p]),
+                "final performance": mean_text(np.array([r["final_performance"] for r in p])),
+                "episodes ending above the upper wall": "",
+                "coverage": f"{np.mean([r['coverage'] for r in p]):.2f} (of its 1,024 cells)",
+                "diverged (iteration)": "",
+                "minutes a pair of seeds": f"{2 * np.mean([r['wall_seconds'] for r in p]) / 60:.0f}"
+                " (one at a time)",
+            }
+        )
+    return rows
+
+
+def reading_exits(ab: dict, variant: str) -> bool:
+    """Whether ``variant`` exits by the A/B's rule (``READING_EXITS_ON`` of its seeds)."""
+    return sum(r["reached_exit"] for r in ab.get("rows", []) if r["variant"] == variant) >= (
+        READING_EXITS_ON
+    )
+
+
+def divergence_rows(ab: dict) -> list[dict[str, Any]]:
+    """For every seed of the A/B that went NaN: when, in which parts, and its critics'
+    losses and gradient norms over the iterations before (the first and the last)."""
+    rows = []
+    for r in ab.get("rows", []):
+        if not r["diverged"]:
+            continue
+        before = r["statistics_before_divergence"] or {}
+        span = lambda k: " → ".join(f"{v:.3g}" for v in (before[k][0], before[k][-2]))  # noqa: E731
+        rows.append(
+            {
+                "reading": READINGS.get(r["variant"], r["variant"]),
+                "seed": r["seed"],
+                "NaN at iteration": r["diverged"]["iteration"],
+                "parts": ", ".join(r["diverged"]["parts"]),
+                "quality critic loss": span("critic_loss_q"),
+                "diversity critic loss": span("critic_loss_d"),
+                "quality critic gradient norm": span("critic_grad_norm_q"),
+                "diversity critic gradient norm": span("critic_grad_norm_d"),
+                "actor gradient norm": span("actor_grad_norm"),
+            }
+        )
+    return rows
+
+
+def published_rows(published: dict) -> list[dict[str, Any]]:
+    """The published `paper` Point-Maze run (``bench/ch3_pointmaze_paper.py``): per
+    method, the seeds in the exit zone and when, the final performance (Table 3.4's
+    Point-Maze column) and coverage, NaN and time."""
+    rows = []
+    for name, m in published["methods"].items():
+        seeds = m["seeds"]
+        final = np.array([np.nan if s["final_performance"] is None else s["final_performance"]
+                          for s in seeds])  # fmt: skip
+        rows.append(
+            {
+                "method": name,
+                "seeds in the exit zone": (
+                    f"{sum(s['steps_to_exit'] is not None for s in seeds)}/{len(seeds)}"
+                ),
+                "steps to the exit zone": _steps([s["steps_to_exit"] for s in seeds]),
+                "final performance": mean_text(final),
+                "coverage": f"{finite_mean([s['coverage'] or np.nan for s in seeds]):.2f}",
+                "s per iteration": f"{m['seconds_per_iteration']:.3f}",
+                "wall time (min)": f"{m['wall_seconds'] / 60:.1f}",
+            }
+        )
+    return rows
