@@ -817,3 +817,52 @@ def test_the_population_plays_with_exploration_noise_only_when_asked(maze):
     np.testing.assert_array_equal(quiet.descriptor, plain.descriptor)  # the default plays as before
     noisy = dataclasses.replace(algo, exploration_noise=0.1).evaluate(params, key)
     assert not np.allclose(noisy.descriptor, plain.descriptor)
+
+
+def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
+    from qdnb.chapters import ch3_qdpg as chapter
+
+    def row(variant, seed, exit_steps=None, final=-126.0, diverged=None):
+        stats = {k: [1.0, 2.0, 3.0] for k in ("critic_loss_q", "critic_loss_d",
+                 "critic_grad_norm_q", "critic_grad_norm_d", "actor_grad_norm")}  # fmt: skip
+        return {
+            "variant": variant,
+            "seed": seed,
+            "reached_exit": exit_steps is not None,
+            "steps_to_exit": exit_steps,
+            "final_performance": None if diverged else final,
+            "share_above_upper_wall": 0.1,
+            "coverage": None if diverged else 0.5,
+            "diverged": diverged,
+            "statistics_before_divergence": stats if diverged else None,
+            "pair_wall_seconds": 1800.0,
+        }
+
+    lost = {"iteration": 250, "parts": ["q_critic", "d_critic"]}
+    ab = {
+        "rows": [row("thesis-adam", s) for s in range(4)]
+        + [row("sum", 0, 3.7e5, -30.0), row("sum", 1, 5e5, -40.0), row("sum", 2, 8e5, -35.0)]
+        + [row("sum", 3)]
+        + [row("thesis-sgd", 0, diverged=lost), row("thesis-sgd", 1, final=-120.0)]
+    }
+    rows = {r["reading"]: r for r in chapter.reading_rows(ab)}
+    assert list(rows) == [chapter.READINGS[v] for v in ("thesis-adam", "sum", "thesis-sgd")]
+    assert rows[chapter.READINGS["sum"]]["seeds in the exit zone"] == "3/4"
+    assert rows[chapter.READINGS["sum"]]["steps to the exit zone"] == "3.7e+05, 5e+05, 8e+05"
+    sgd = rows[chapter.READINGS["thesis-sgd"]]
+    assert sgd["final performance"] == "-120.0 (1 of 2 seeds diverged)"  # not averaged in
+    assert sgd["diverged (iteration)"] == "250"
+    assert chapter.reading_exits(ab, "sum") and not chapter.reading_exits(ab, "thesis-adam")
+    (d,) = chapter.divergence_rows(ab)
+    assert d["NaN at iteration"] == 250 and d["parts"] == "q_critic, d_critic"
+    assert d["quality critic loss"] == "1 → 2"  # the first and the last finite iteration
+    peer = {"rows": [{"reached_exit": True, "steps_to_exit": 5e5, "final_performance": -30.0,
+                      "coverage": 0.2, "wall_seconds": 600.0}]}  # fmt: skip
+    assert chapter.reading_rows(ab, peer)[-1]["seeds in the exit zone"] == "1/1"
+    published = {"methods": {"QD-PG": {"seeds": [
+        {"final_performance": -24.0, "steps_to_exit": 4e5, "coverage": 0.9},
+        {"final_performance": None, "steps_to_exit": None, "coverage": None},
+    ], "seconds_per_iteration": 0.2, "wall_seconds": 300.0}}}  # fmt: skip
+    (p,) = chapter.published_rows(published)
+    assert p["seeds in the exit zone"] == "1/2"
+    assert p["final performance"] == "-24.0 (1 of 2 seeds diverged)"
