@@ -15,7 +15,14 @@ settings.  A budget of B iterations then costs the sum over the methods of their
 compilation plus B times their rate, plus the rest.  Writes
 ``bench/results/ch3_small_budget.json``.
 
+Then checked on the page itself: ``--check`` reads an executed `small` page's
+``summary.json`` (its wall time, the Point-Maze steps it ran, each method's seconds per
+iteration), projects the page at each budget from it the same way, and adds the check
+to the JSON; where the two disagree the page's own measurement decides (its
+``chosen_steps``).
+
     python bench/ch3_small_budget.py [--probe 20]
+    python bench/ch3_small_budget.py --check data/runs/small/ch3_qdpg
 """
 
 from __future__ import annotations
@@ -41,12 +48,44 @@ from qdnb.chapters.ch3_qdpg import (
 
 PAGE_SECONDS = 15 * 60
 STEP = 16_000  # budgets in multiples of 20 iterations of 4 x 200 steps
+RESULTS = Path(__file__).parent / "results" / "ch3_small_budget.json"
+
+
+def check(run_dir: Path) -> None:
+    """The rule applied to an executed page: its wall time moved by each method's
+    measured rate to every budget."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    cfg = config("ch3_qdpg", "small")
+    steps_per_iteration = cfg.pointmaze.num_actors * cfg.pointmaze.episode_length
+    ran = cfg.pointmaze.num_steps
+    rates = summary["results"]["pointmaze_seconds_per_iteration"]
+    rate = sum(rates.values())
+    wall = summary["wall_time_s"]
+    page = lambda steps: wall + rate * (steps - ran) / steps_per_iteration
+    budgets = {str(b): page(b) for b in range(STEP, 400_001, STEP)}
+    fitting = [b for b in range(STEP, 400_001, STEP) if page(b) <= PAGE_SECONDS]
+    out = json.loads(RESULTS.read_text())
+    out["page_check"] = {
+        "run": str(run_dir),
+        "commit": summary["git_sha"],
+        "date": time.strftime("%Y-%m-%d"),
+        "point_maze_steps_it_ran": ran,
+        "page_wall_seconds": wall,
+        "seconds_per_iteration": rates,
+        "projected_page_seconds_by_budget": budgets,
+        "chosen_steps": max(fitting) if fitting else None,
+    }
+    RESULTS.write_text(json.dumps(out, indent=1) + "\n")
+    print(json.dumps({"chosen_steps": out["page_check"]["chosen_steps"]}), f"wrote {RESULTS}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--probe", type=int, default=20)
+    parser.add_argument("--check", type=Path, help="an executed small page's run folder")
     args = parser.parse_args()
+    if args.check:
+        return check(args.check)
     cfg = config("ch3_qdpg", "small")
     task = cfg.pointmaze
     steps_per_iteration = task.num_actors * task.episode_length
@@ -93,9 +132,8 @@ def main() -> None:
         "projected_page_seconds_by_budget": budgets,
         "chosen_steps": max(fitting) if fitting else None,
     }
-    path = Path(__file__).parent / "results" / "ch3_small_budget.json"
-    path.write_text(json.dumps(out, indent=1) + "\n")
-    print(json.dumps({k: out[k] for k in ("chosen_steps",)}), f"wrote {path}")
+    RESULTS.write_text(json.dumps(out, indent=1) + "\n")
+    print(json.dumps({k: out[k] for k in ("chosen_steps",)}), f"wrote {RESULTS}")
 
 
 if __name__ == "__main__":
