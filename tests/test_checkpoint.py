@@ -341,3 +341,22 @@ def test_the_cli_takes_one_checkpoint_flag():
     both = [sys.executable, "-m", "qdnb", "run", "ch2_primer", "--fresh", "--resume"]
     proc = subprocess.run(both, cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
+
+
+def test_checkpoints_are_versioned_by_the_package_sources_not_the_commit(tmp_path):
+    """A checkpoint's code version follows the package's Python sources only: a
+    notebook or text change (a new commit) keeps it, an edited module changes it."""
+    from qdnb.book.provenance import package_digest
+
+    (tmp_path / "qd").mkdir()
+    (tmp_path / "qd" / "a.py").write_text("x = 1\n")
+    (tmp_path / "b.py").write_text("y = 2\n")
+    before = package_digest(tmp_path)
+    (tmp_path / "notes.md").write_text("text that computes nothing\n")
+    assert package_digest(tmp_path) == before
+    (tmp_path / "qd" / "a.py").write_text("x = 3\n")
+    assert package_digest(tmp_path) != before
+    (tmp_path / "qd" / "a.py").write_text("x = 1\n")
+    assert package_digest(tmp_path) == before
+    (tmp_path / "qd" / "a.py").rename(tmp_path / "qd" / "c.py")
+    assert package_digest(tmp_path) != before  # a renamed module is another package

@@ -6,6 +6,7 @@ Every notebook run writes ``data/runs/<scale>/<notebook>/summary.json`` through
 
 from __future__ import annotations
 
+import hashlib
 import os
 import platform
 import subprocess
@@ -134,11 +135,23 @@ def checkpoint_intervals() -> dict[str, float]:
     return out
 
 
+def package_digest(root: Path | None = None) -> str:
+    """A digest of the ``qdnb`` package's Python sources: what a loop computes with.
+    Unlike the commit it ignores notebooks, benches, tests and the book's text, so a
+    checkpoint of an hours-long loop survives commits that do not touch the package."""
+    root = Path(__file__).resolve().parents[1] if root is None else root
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def code_version() -> str:
     """What a checkpoint must have been written by to be loaded: this package's
-    commit and the versions of its numerical dependencies."""
+    sources (``package_digest``) and the versions of its numerical dependencies."""
     deps = ", ".join(f"{k} {v}" for k, v in versions().items())
-    return f"qdnb {git_sha()} ({deps})"
+    return f"qdnb sources {package_digest()} ({deps})"
 
 
 class Run:
