@@ -56,10 +56,10 @@ from qdnb.book.provenance import code_version, device, git_sha
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import (
     POINTMAZE_PAPER,
-    READING_EXITS_ON,
     QDPGConfig,
     build_algorithms,
     make_task_env,
+    reading_exits,
     run_method,
 )
 from qdnb.core import checkpoint, health
@@ -159,11 +159,6 @@ def seed_rows(variant: str, seeds: list[int], result, parts: tuple[str, ...], wa
     return rows
 
 
-def exits(rows: list[dict], variant: str) -> bool:
-    mine = [r for r in rows if r["variant"] == variant]
-    return sum(r["reached_exit"] for r in mine) >= READING_EXITS_ON
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
@@ -178,7 +173,7 @@ def main() -> None:
     env = make_task_env(base, "pointmaze")
     for variant in args.variants:
         earlier = list(VARIANTS)[: list(VARIANTS).index(variant)]
-        if variant not in ALWAYS and any(exits(out["rows"], v) for v in earlier):
+        if variant not in ALWAYS and any(reading_exits(out, v) for v in earlier):
             print(f"{variant}: skipped, an earlier reading exits (the rule's early stop)")
             continue
         what, make_cfg, fields = VARIANTS[variant]

@@ -866,3 +866,6 @@ def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
     (p,) = chapter.published_rows(published)
     assert p["seeds in the exit zone"] == "1/2"
     assert p["final performance"] == "-24.0 (1 of 2 seeds diverged)"
+    assert p["coverage"] == "0.90"  # the diverged seed's None is in no mean
+    published["methods"]["QD-PG"]["seeds"][0]["coverage"] = 0.0  # a finite zero is a value
+    assert chapter.published_rows(published)[0]["coverage"] == "0.00"

@@ -1109,6 +1109,12 @@ def read_json(path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
+def _numbers(rows: list[dict], key: str) -> np.ndarray:
+    """``key`` of each row as floats, NaN where a results file holds ``None`` (a diverged
+    seed's numbers)."""
+    return np.array([np.nan if r[key] is None else r[key] for r in rows], float)
+
+
 def _steps(values: list) -> str:
     hits = [v for v in values if v is not None]
     return ", ".join(f"{v:.2g}" for v in hits) or "never"
@@ -1123,19 +1129,17 @@ def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
         mine = [r for r in ab.get("rows", []) if r["variant"] == variant]
         if not mine:
             continue
-        final = np.array([np.nan if r["final_performance"] is None else r["final_performance"]
-                          for r in mine])  # fmt: skip
         lost = [r for r in mine if r["diverged"]]
         rows.append(
             {
                 "reading": label,
                 "seeds in the exit zone": f"{sum(r['reached_exit'] for r in mine)}/{len(mine)}",
                 "steps to the exit zone": _steps([r["steps_to_exit"] for r in mine]),
-                "final performance": mean_text(final),
+                "final performance": mean_text(_numbers(mine, "final_performance")),
                 "episodes ending above the upper wall": (
                     f"{np.mean([r['share_above_upper_wall'] for r in mine]):.1%}"
                 ),
-                "coverage": f"{finite_mean([r['coverage'] or np.nan for r in mine]):.2f}",
+                "coverage": f"{finite_mean(_numbers(mine, 'coverage')):.2f}",
                 "diverged (iteration)": ", ".join(str(r["diverged"]["iteration"]) for r in lost)
                 or "none",
                 "minutes a pair of seeds": (
@@ -1200,8 +1204,6 @@ def published_rows(published: dict) -> list[dict[str, Any]]:
     rows = []
     for name, m in published["methods"].items():
         seeds = m["seeds"]
-        final = np.array([np.nan if s["final_performance"] is None else s["final_performance"]
-                          for s in seeds])  # fmt: skip
         rows.append(
             {
                 "method": name,
@@ -1209,8 +1211,8 @@ def published_rows(published: dict) -> list[dict[str, Any]]:
                     f"{sum(s['steps_to_exit'] is not None for s in seeds)}/{len(seeds)}"
                 ),
                 "steps to the exit zone": _steps([s["steps_to_exit"] for s in seeds]),
-                "final performance": mean_text(final),
-                "coverage": f"{finite_mean([s['coverage'] or np.nan for s in seeds]):.2f}",
+                "final performance": mean_text(_numbers(seeds, "final_performance")),
+                "coverage": f"{finite_mean(_numbers(seeds, 'coverage')):.2f}",
                 "s per iteration": f"{m['seconds_per_iteration']:.3f}",
                 "wall time (min)": f"{m['wall_seconds'] / 60:.1f}",
             }
