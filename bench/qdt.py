@@ -1,5 +1,8 @@
-"""Quality-Diversity Transformer on Ant-Omni (250-step episodes): training
-throughput and evaluation-rollout speed, with and without the key/value cache.
+"""Quality-Diversity Transformer: training throughput and rollout speed on Ant-Omni
+(``speed``, the default), and the learning curve that sets ``small``'s training budget
+(``curve``).
+
+``python bench/qdt.py speed``, Ant-Omni's 250-step episodes:
 
 1. Training: tokens per second (3 tokens per timestep x 250 timesteps x batch
    size) of the jitted train step (``make_train_step(model,
@@ -23,31 +26,70 @@ throughput and evaluation-rollout speed, with and without the key/value cache.
 The model is the scale's (``config("ch4_qdt", scale)``: embedding size, layers,
 heads, dropout, batch size, learning rate).  Writes ``bench/results/qdt.json``.
 
-    python bench/qdt.py [--scale small] [--goals 8] [--episodes 1]
+    python bench/qdt.py [speed] [--scale small] [--goals 8] [--episodes 1]
+
+``python bench/qdt.py curve``: one QDT per reading trained on the ``small`` ME-LS
+dataset of Halfcheetah-Uni (the chapter's seed 0: the same repertoire, zones, goals,
+selection and episodes as the notebook) and evaluated every ``--eval-every`` steps:
+training loss, held-out action error of the demonstrators' fresh episodes with their
+own BDs and with BDs shuffled between demonstrators, distance to each demonstrator's
+own BD when conditioned on it, distance to the goals.  Writes
+``bench/results/qdt_curve.json``; the rule that reads it is ``CURVE_RULE``.
+
+    python bench/qdt.py curve [--steps 3000] [--eval-every 250] [--variants thesis tanh]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from qdnb.book.provenance import device, versions
 from qdnb.book.registry import config
+from qdnb.chapters.ch4_qdt import (
+    demonstrations,
+    load_or_recompute_repertoires,
+    qdt_model,
+    setting,
+)
 from qdnb.core.io import atomic_write_json
 from qdnb.envs import make_env
-from qdnb.models.qdt.data import Trajectories
-from qdnb.models.qdt.evaluate import play
+from qdnb.models.qdt.data import Trajectories, seed_repertoire
+from qdnb.models.qdt.evaluate import goal_scores, imitation, play
 from qdnb.models.qdt.model import QDT, TOKENS_PER_STEP, init_params
-from qdnb.models.qdt.train import make_train_step
+from qdnb.models.qdt.train import conditioning_gap, fit, make_train_step
 from qdnb.nets.transformer import make_optimizer
 from qdnb.qd.cvt import cvt_centroids
 
 EPISODE_LENGTH = 250  # Chapter 4's Ant-Omni episodes
+
+CURVE_RULE = """Written before the runs.  small's training budget (gradient steps, the same
+for every dataset) is read from the thesis's reading (linear head, Flax's initialisation,
+the raw BD) on the small ME-LS data of Halfcheetah-Uni, at small's batch size: the first
+evaluated step count by which the held-out action error has made 90 % of its fall over
+the run (h(s) <= h_min + 0.1 (h(first) - h_min)), provided the run's last third lowers it
+by less than 5 % (else the curve has not flattened and the run is extended).  The
+closed-loop distances (to the demonstrators' own BDs and to the goals) are read beside it:
+a budget where the held-out error has flattened but they still fall is reported as such.
+The other readings (tanh head, PyTorch's initialisation, the BD scaled to its box) are
+taken in the chapter only if they lower the held-out error or the closed-loop distances at
+that budget, and then as a labelled choice."""
+
+# name -> the QDTConfig fields that differ from the thesis's reading
+CURVE_VARIANTS = {
+    "thesis": {},
+    "tanh": {"head": "tanh"},
+    "torch": {"init_scheme": "torch"},
+    "box": {"bd_scaling": True},
+}
 
 
 def synthetic_batch(key: jax.Array, batch: int, env) -> Trajectories:
@@ -102,6 +144,7 @@ def bench_training(model, params, batch, learning_rate, key, repeats):
     start = time.perf_counter()
     compiled = step.lower(params, opt_state, batch, key).compile()
     compile_s = time.perf_counter() - start
+    flops = step_flops(compiled)
     params, opt_state, loss = jax.block_until_ready(
         compiled(params, opt_state, batch, key)
     )  # warm-up
@@ -111,7 +154,29 @@ def bench_training(model, params, batch, learning_rate, key, repeats):
         start = time.perf_counter()
         params, opt_state, loss = jax.block_until_ready(compiled(params, opt_state, batch, k))
         times.append(time.perf_counter() - start)
-    return compile_s, times, float(loss)
+    return compile_s, times, float(loss), flops
+
+
+def step_flops(compiled) -> float:
+    """XLA's count of the floating-point operations of one compiled call."""
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost.get("flops", float("nan")))
+
+
+def matmul_rate(n: int = 1024, repeats: int = 20) -> float:
+    """The machine's float32 matrix-multiply rate (FLOP/s, median of ``repeats``
+    products of two ``n x n`` matrices, every core XLA uses): the ceiling a training
+    step's rate is read against."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n))
+    product = jax.jit(lambda x: x @ x).lower(a).compile()
+    jax.block_until_ready(product(a))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(product(a))
+        times.append(time.perf_counter() - start)
+    return 2 * n**3 / statistics.median(times)
 
 
 def bench_rollouts(env, model, params, goals, key, num_episodes, repeats):
@@ -138,8 +203,147 @@ def bench_rollouts(env, model, params, goals, key, num_episodes, repeats):
     return compile_s, times, outputs
 
 
+def flattening_step(steps: list[int], heldout: list[float]) -> tuple[int, bool]:
+    """``CURVE_RULE``: the first step by which the held-out error made 90 % of its fall,
+    and whether the run's last third lowered it by less than 5 % (flat)."""
+    h, low = np.asarray(heldout), float(np.min(heldout))
+    at = int(np.argmax(h <= low + 0.1 * (h[0] - low)))
+    third = max(1, len(h) // 3)
+    before = float(np.min(h[: len(h) - third]))
+    return int(steps[at]), bool(before - low < 0.05 * before)
+
+
+def curve(args) -> None:
+    cfg = config("ch4_qdt", args.scale)
+    repro_cfg = config("ch4_reproducibility", args.scale)
+    if args.batch:
+        cfg = replace(cfg, batch_size=args.batch)
+    repertoires, status = load_or_recompute_repertoires(repro_cfg, args.scale, seed=0)
+    # the chapter's keys for seed 0 of this environment (ch4_qdt.run_environments)
+    env_key = jax.random.fold_in(jax.random.PRNGKey(0), cfg.environments.index(args.env))
+    where = setting(cfg, repro_cfg, args.env, env_key)
+    k_sel, k_rec, _, k_train, k_eval, _ = jax.random.split(jax.random.fold_in(where.k_seeds, 0), 6)
+    rep = seed_repertoire(repertoires[args.env][args.source], 0)
+    sel, data, heldout, targets = demonstrations(cfg, where, rep, k_sel, k_rec)
+    print(
+        f"{args.env} {args.source}: {sel.cells.size} demonstrators, {data.size} trajectories, "
+        f"{heldout.size} held out; demonstrators' own distance "
+        f"{np.nanmean(targets.distance):.3f}",
+        flush=True,
+    )
+    out = {
+        "benchmark": "QDT learning curves on small's data (CURVE_RULE)",
+        "rule": CURVE_RULE,
+        "device": device(),
+        "versions": versions(),
+        "scale": args.scale,
+        "environment": args.env,
+        "source": args.source,
+        "repertoires": status[args.env][args.source],
+        "batch_size": cfg.batch_size,
+        "learning_rate": cfg.learning_rate,
+        "model": {k: getattr(cfg, k) for k in ("embed_dim", "num_layers", "num_heads", "dropout")},
+        "dataset_size": data.size,
+        "demonstrators": int(sel.cells.size),
+        "demonstrator_imitation": float(np.nanmean(targets.distance)),
+        "variants": {},
+    }
+    if args.out.exists():  # earlier variants of the same run are kept
+        earlier = json.loads(args.out.read_text())
+        out["variants"] = earlier.get("variants", {})
+    for name in args.variants:
+        model = qdt_model(replace(cfg, **CURVE_VARIANTS[name]), where.env)
+        play_goals = jax.jit(
+            lambda p, k: play(where.env, model, p, where.goals, k, cfg.eval_episodes)
+        )
+        play_targets = jax.jit(
+            lambda p, k: play(where.env, model, p, targets.padded, k, cfg.eval_episodes)
+        )
+        rows, clock = [], {"train": time.perf_counter(), "train_s": [], "eval_s": []}
+
+        def evaluate(params, step_done):
+            began = time.perf_counter()
+            clock["train_s"].append(began - clock["train"])
+            gap = conditioning_gap(model, params, heldout, k_eval)
+            goals = goal_scores(where.goals, play_goals(params, k_eval))
+            zones = imitation(targets, play_targets(params, k_eval))
+            rows.append(
+                {
+                    "step": step_done,
+                    **gap,
+                    "imitation": float(np.nanmean(zones)),
+                    "avg_distance": float(goals["distance"].mean()),
+                }
+            )
+            print(
+                f"{name} step {step_done}: "
+                + ", ".join(f"{k} {v:.4g}" for k, v in rows[-1].items() if k != "step"),
+                flush=True,
+            )
+            clock["eval_s"].append(time.perf_counter() - began)
+            clock["train"] = time.perf_counter()
+            return {"avg_distance": rows[-1]["avg_distance"]}
+
+        res = fit(
+            model,
+            data,
+            k_train,
+            args.steps,
+            cfg.batch_size,
+            cfg.learning_rate,
+            args.eval_every,
+            evaluate,
+            progress=False,
+        )
+        for row, loss in zip(rows, res.losses):
+            row["train_loss"] = loss
+        steps, held = [r["step"] for r in rows], [r["heldout_mse"] for r in rows]
+        flat_at, flat = flattening_step(steps, held)
+        out["variants"][name] = {
+            "fields": CURVE_VARIANTS[name],
+            "evaluations": rows,
+            "best_step": res.best_step,
+            "flattening_step": flat_at,
+            "flat": flat,
+            # the first interval and evaluation compile: the later ones are the rate
+            "train_seconds_per_step": float(np.median(clock["train_s"][1:] or clock["train_s"]))
+            / args.eval_every,
+            "seconds_per_evaluation": float(np.median(clock["eval_s"][1:] or clock["eval_s"])),
+            "first_interval_seconds": clock["train_s"][0],
+        }
+        print(
+            f"{name}: held-out error flattens at step {flat_at} "
+            f"({'flat' if flat else 'still falling'}); "
+            f"{out['variants'][name]['train_seconds_per_step']:.3f} s a step",
+            flush=True,
+        )
+        atomic_write_json(args.out, out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command")
+    c = sub.add_parser("curve", help="learning curves on small's data (CURVE_RULE)")
+    c.add_argument("--scale", default="small", help="(tiny: a quick check of the code)")
+    c.add_argument("--env", default="halfcheetah_uni", choices=("halfcheetah_uni", "ant_omni"))
+    c.add_argument("--source", default="ME-LS")
+    c.add_argument("--steps", type=int, default=3000)
+    c.add_argument("--eval-every", type=int, default=250)
+    c.add_argument("--batch", type=int, default=0, help="batch size (default: small's)")
+    c.add_argument(
+        "--variants", nargs="+", default=list(CURVE_VARIANTS), choices=list(CURVE_VARIANTS)
+    )
+    c.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "qdt_curve.json")
+    sub.add_parser("speed", help="training throughput and rollouts (the default)")
+    args, rest = parser.parse_known_args()
+    if args.command == "curve":
+        curve(args)
+    else:
+        speed(rest)
+
+
+def speed(argv) -> None:
+    parser = argparse.ArgumentParser(description="QDT training throughput and rollouts")
     parser.add_argument("--scale", default="small")
     parser.add_argument("--train-repeats", type=int, default=20)
     parser.add_argument(
@@ -150,13 +354,11 @@ def main() -> None:
     )
     parser.add_argument("--rollout-repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "qdt.json")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     cfg = config("ch4_qdt", args.scale)
 
     env = make_env("ant_omni", episode_length=EPISODE_LENGTH)
-    model = QDT(
-        env.action_size, EPISODE_LENGTH, cfg.embed_dim, cfg.num_layers, cfg.num_heads, cfg.dropout
-    )
+    model = qdt_model(cfg, env)
     k_init, k_batch, k_train, k_goals, k_play = jax.random.split(jax.random.PRNGKey(0), 5)
     params = init_params(model, k_init, env.descriptor_size, env.observation_size)
     num_params = sum(x.size for x in jax.tree.leaves(params))
@@ -164,12 +366,17 @@ def main() -> None:
     # 1. training throughput
     batch = synthetic_batch(k_batch, cfg.batch_size, env)
     tokens = TOKENS_PER_STEP * EPISODE_LENGTH * cfg.batch_size
-    train_compile, train_times, loss = bench_training(
+    train_compile, train_times, loss, flops = bench_training(
         model, params, batch, cfg.learning_rate, k_train, args.train_repeats
     )
     train_s = statistics.median(train_times)
+    rate = matmul_rate()
+    print(
+        f"training step: {flops / 1e9:.2f} GFLOP (XLA's count), {flops / train_s / 1e9:.1f} "
+        f"GFLOP/s against a {rate / 1e9:.1f} GFLOP/s matrix product ({flops / train_s / rate:.0%})"
+    )
     no_dropout = model.clone(dropout=0.0)
-    _, no_dropout_times, _ = bench_training(
+    _, no_dropout_times, _, _ = bench_training(
         no_dropout, params, batch, cfg.learning_rate, k_train, args.train_repeats
     )
     no_dropout_s = statistics.median(no_dropout_times)
@@ -258,6 +465,10 @@ def main() -> None:
                 "seconds_per_step": train_s,
                 "step_seconds": train_times,
                 "tokens_per_second": tokens / train_s,
+                "flops_per_step": flops,
+                "flops_per_second": flops / train_s,
+                "matmul_flops_per_second": rate,
+                "fraction_of_matmul_rate": flops / train_s / rate,
                 "repeats": args.train_repeats,
                 "last_loss": loss,
                 "without_dropout": {

@@ -24,8 +24,15 @@ from qdnb.models.qdt.data import (
     select_policies,
 )
 from qdnb.models.qdt.evaluate import cache_bytes, play, rollout_chunks
-from qdnb.models.qdt.model import QDT, init_params
-from qdnb.models.qdt.train import fit, loss_fn, make_train_step
+from qdnb.models.qdt.model import QDT, init_params, scale_to_box, unscale_from_box
+from qdnb.models.qdt.train import (
+    batch_indices,
+    conditioning_gap,
+    fit,
+    loss_fn,
+    make_train_step,
+    shuffled_descriptors,
+)
 from qdnb.nets.transformer import make_optimizer
 from qdnb.qd.repertoire import Repertoire
 
@@ -97,7 +104,7 @@ def dense(p, x):
 def test_predictions_are_causal_in_observations_and_actions(forward):
     bd, obs, actions = inputs(jax.random.PRNGKey(2))
     pred = forward(bd, obs, actions)
-    assert pred.shape == (B, T, ACT) and np.all(np.abs(pred) <= 1.0)
+    assert pred.shape == (B, T, ACT)  # (a linear head: Algorithm 8's Pred_A)
     noise = jax.random.normal(jax.random.PRNGKey(3), (B, ACT))
     for k in range(T):
         # O_k is seen from the prediction of A_k on, never before
@@ -241,60 +248,168 @@ def test_fit_is_deterministic_and_keeps_the_best_evaluation():
     step = make_train_step(model, make_optimizer(1e-3))
     calls = []
 
-    def evaluate(params, epoch):
-        calls.append(epoch)
-        return {"avg_distance": {1: 2.0, 2: 1.0, 3: 3.0, 4: 1.5}[epoch]}
+    def evaluate(params, step_done):
+        calls.append(step_done)
+        return {"avg_distance": {2: 2.0, 4: 1.0, 6: 3.0, 8: 1.5}[step_done]}
 
-    run = lambda epochs: fit(
+    run = lambda steps, key=11: fit(
         model,
         data,
-        jax.random.PRNGKey(11),
-        epochs=epochs,
+        jax.random.PRNGKey(key),
+        steps=steps,
         batch_size=4,
         learning_rate=1e-3,
-        eval_every=1,
+        eval_every=2,
         evaluate=evaluate,
         step=step,
         progress=False,
     )
-    a, b = run(4), run(4)
-    assert calls == [1, 2, 3, 4] * 2
+    a, b = run(8), run(8)
+    assert calls == [2, 4, 6, 8] * 2
     assert len(a.losses) == 4 and a.losses == b.losses  # float equality
     assert jax.tree.all(jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a.params, b.params))
-    # epoch 2 evaluated best: its parameters are kept, those a 2-epoch run ends with
-    assert a.best_epoch == 2 and [e["epoch"] for e in a.evaluations] == [1, 2, 3, 4]
-    two = run(2)
-    assert two.losses == a.losses[:2]
+    # step 4 evaluated best: its parameters are kept, those a 4-step run ends with
+    assert a.best_step == 4 and [e["step"] for e in a.evaluations] == [2, 4, 6, 8]
+    four = run(4)
+    assert four.losses == a.losses[:2]
     assert jax.tree.all(
-        jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a.params, two.params)
+        jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a.params, four.params)
     )
-    # another key trains differently
-    other = fit(
+    assert run(2, key=12).losses[0] != a.losses[0]  # another key trains differently
+
+
+def test_every_dataset_gets_the_same_number_of_gradient_steps():
+    """The budget is counted in updates: a dataset 10 times larger gets as many steps,
+    each on a full batch, and every trajectory is read once a pass."""
+    sizes, seen = (3, 8, 80), {}
+    for n in sizes:
+        data = trajectories(jax.random.PRNGKey(n), n=n, valid_steps=(T,) * n)
+        calls = []
+        fit(
+            small_qdt(),
+            data,
+            jax.random.PRNGKey(0),
+            steps=6,
+            batch_size=4,
+            learning_rate=1e-3,
+            eval_every=3,
+            evaluate=lambda params, s: calls.append(s) or {"avg_distance": 0.0},
+            progress=False,
+        )
+        seen[n] = calls
+        order = batch_indices(jax.random.PRNGKey(1), n, 4, 0, 40)
+        assert order.shape == (40, 4)
+        per_pass = max(1, n // 4)
+        for p in range(40 // per_pass):  # each pass: distinct trajectories, one permutation
+            rows = order[p * per_pass : (p + 1) * per_pass].ravel()
+            assert len(set(rows)) == min(n, rows.size) and set(rows) <= set(range(n))
+        # a step's batch depends on its number only: resuming at step 7 reads the same
+        np.testing.assert_array_equal(batch_indices(jax.random.PRNGKey(1), n, 4, 7, 5), order[7:12])
+    assert all(calls == [3, 6] for calls in seen.values())
+
+
+def test_the_shuffled_descriptor_diagnostic_shows_a_used_conditioning():
+    """A hand-made dataset whose actions are set by the BD alone (a = tanh(2 bd) on
+    every step, observations pure noise): a tiny QDT trained on it predicts held-out
+    actions well from the true BD and badly from a BD shuffled between demonstrators;
+    an untrained one shows no gap."""
+    key = jax.random.PRNGKey(21)
+
+    def demonstrations(k, per_policy):
+        n = 6 * per_policy
+        k_bd, k_obs = jax.random.split(k)
+        bd = jnp.repeat(jax.random.uniform(k_bd, (6, BD), minval=-1.0, maxval=1.0), per_policy, 0)
+        bd = bd + 0.01 * jax.random.normal(k_obs, bd.shape)
+        actions = jnp.broadcast_to(jnp.tanh(2 * bd[:, None, :1].repeat(ACT, -1)), (n, T, ACT))
+        return Trajectories(
+            bd=bd,
+            obs=jax.random.normal(k_obs, (n, T, OBS)),
+            actions=actions,
+            valid=jnp.ones((n, T), bool),
+            fitness=jnp.zeros(n),
+            policy=jnp.repeat(jnp.arange(6), per_policy),
+        )
+
+    train, heldout = demonstrations(key, 8), demonstrations(jax.random.fold_in(key, 1), 2)
+    shuffled = shuffled_descriptors(heldout, jax.random.PRNGKey(3))
+    policy = np.asarray(heldout.policy)
+    source = [int(np.flatnonzero(np.all(np.asarray(heldout.bd) == b, -1))[0]) for b in shuffled.bd]
+    assert all(policy[i] != policy[j] for i, j in enumerate(source))  # another demonstrator's BD
+    model = small_qdt(embed_dim=16, num_layers=1, num_heads=2)
+    res = fit(
         model,
-        data,
-        jax.random.PRNGKey(12),
-        epochs=1,
-        batch_size=4,
-        learning_rate=1e-3,
-        eval_every=1,
-        evaluate=evaluate,
-        step=step,
+        train,
+        jax.random.PRNGKey(4),
+        steps=150,
+        batch_size=8,
+        learning_rate=3e-3,
+        eval_every=150,
+        evaluate=lambda p, s: {"avg_distance": 0.0},
         progress=False,
     )
-    assert other.losses[0] != a.losses[0]
+    trained = conditioning_gap(model, res.params, heldout, jax.random.PRNGKey(3))
+    untrained = conditioning_gap(
+        model, init_params(model, jax.random.PRNGKey(4), BD, OBS), heldout, jax.random.PRNGKey(3)
+    )
+    assert trained["heldout_mse"] < 0.05 and trained["gap"] > 5 * trained["heldout_mse"]
+    assert abs(untrained["gap"]) < 0.1 * untrained["heldout_mse"]
+    with pytest.raises(ValueError, match="at least two"):
+        shuffled_descriptors(heldout.subset(policy == 0), jax.random.PRNGKey(0))
+    alone = conditioning_gap(model, res.params, heldout.subset(policy == 0), jax.random.PRNGKey(0))
+    assert np.isnan(alone["gap"]) and alone["heldout_mse"] < 0.05  # one demonstrator: no gap
+
+
+def test_the_labelled_departures_from_algorithm_8():
+    """The thesis's linear head predicts outside [-1, 1]; the tanh head cannot; PyTorch's
+    initialisation gives the BD embedding a bias, which tells BDs on one ray apart;
+    scaling the BD from its box inverts (to float32 rounding); unknown readings are refused."""
+    low, high = (-15.0, -15.0), (15.0, 15.0)
+    bd = jnp.array([[2.0, 2.0], [8.0, 8.0], [-15.0, 15.0], [0.0, 0.0]])
+    eps = 30 * np.finfo(np.float32).eps  # float32 rounding at the box's size (30)
+    np.testing.assert_allclose(
+        unscale_from_box(scale_to_box(bd, low, high), low, high), bd, rtol=0, atol=4 * eps
+    )
+    np.testing.assert_array_equal(scale_to_box(bd, low, high)[2:], [[-1.0, 1.0], [0.0, 0.0]])
+    bd, obs, actions = inputs(jax.random.PRNGKey(30))
+    outs = {}
+    for head in ("linear", "tanh"):
+        model = small_qdt(head=head)
+        params = init_params(model, jax.random.PRNGKey(31), BD, OBS)
+        big = jax.tree.map(lambda x: 50 * x, params)
+        outs[head] = np.abs(np.asarray(model.apply(big, 10 * bd, obs, actions))).max()
+    assert outs["linear"] > 1.0 and outs["tanh"] <= 1.0
+
+    def ray_similarity(init):
+        model = small_qdt(init_scheme=init)
+        params = init_params(model, jax.random.PRNGKey(32), BD, OBS)
+        tokens = model.apply(
+            params,
+            jnp.array([[2.0, 2.0], [8.0, 8.0]]),
+            obs[:1].repeat(2, 0),
+            actions[:1].repeat(2, 0),
+            jnp.arange(T),
+            method=QDT.tokens,
+        )
+        a, b = np.asarray(tokens[0, 0]), np.asarray(tokens[1, 0])  # the BD tokens of step 0
+        return a @ b / np.linalg.norm(a) / np.linalg.norm(b)
+
+    assert ray_similarity("flax") > 0.99 > ray_similarity("torch")
+    for bad in ({"head": "softmax"}, {"init_scheme": "xavier"}):
+        with pytest.raises(ValueError, match="unknown"):
+            init_params(small_qdt(**bad), jax.random.PRNGKey(0), BD, OBS)
 
 
 def test_fit_and_the_config_reject_bad_settings():
     model = small_qdt()
     data = trajectories(jax.random.PRNGKey(13))
-    never = lambda params, epoch: pytest.fail("evaluated")
-    for epochs, eval_every in ((3, 2), (0, 1), (2, 0)):
+    never = lambda params, step: pytest.fail("evaluated")
+    for steps, eval_every in ((3, 2), (0, 1), (2, 0)):
         with pytest.raises(ValueError, match="multiple of eval_every"):
             fit(
                 model,
                 data,
                 jax.random.PRNGKey(0),
-                epochs=epochs,
+                steps=steps,
                 batch_size=2,
                 learning_rate=1e-3,
                 eval_every=eval_every,
@@ -306,7 +421,7 @@ def test_fit_and_the_config_reject_bad_settings():
             model,
             data.subset(np.zeros(3, bool)),
             jax.random.PRNGKey(0),
-            epochs=1,
+            steps=1,
             batch_size=2,
             learning_rate=1e-3,
             eval_every=1,
@@ -316,7 +431,7 @@ def test_fit_and_the_config_reject_bad_settings():
     tiny = config("ch4_qdt", "tiny")
     assert isinstance(tiny, QDTConfig) and isinstance(tiny.task("ant_omni"), QDTTask)
     assert tiny.task("halfcheetah_uni") is tiny.halfcheetah_uni
-    for bad in ({"epochs": 3, "eval_every": 2}, {"epochs": 0}, {"eval_every": 0}):
+    for bad in ({"train_steps": 3, "eval_every": 2}, {"train_steps": 0}, {"eval_every": 0}):
         with pytest.raises(ValueError, match="multiple of eval_every"):
             dataclasses.replace(tiny, **bad)
     with pytest.raises(ValueError, match="multiple of num_heads"):
@@ -641,10 +756,12 @@ def test_a_qdt_with_no_data_is_recorded_as_untrained_beside_trained_ones():
     from qdnb.chapters.ch4_qdt import QDTRun, untrained_run
 
     cfg = config("ch4_qdt", "tiny")
-    empty = untrained_run(cfg, num_goals=5)
+    empty = untrained_run(cfg, num_goals=5, num_zones=3)
     trained = dict(empty, avg_distance=0.3, distance=np.full(5, 0.3), dataset_size=12)
-    trained["best_epoch"] = cfg.epochs
+    trained["best_step"] = cfg.train_steps
     run = QDTRun.stack([trained, empty])  # the same shapes: seeds stack
-    assert run.distance.shape == (2, 5) and run.loss.shape == (2, cfg.epochs)
+    evaluations = cfg.train_steps // cfg.eval_every
+    assert run.distance.shape == (2, 5) and run.loss.shape == (2, evaluations)
+    assert run.imitation.shape == (2, 3)
     assert np.isnan(run.avg_distance[1]) and run.dataset_size[1] == 0
     assert not np.isnan(run.avg_distance[0])

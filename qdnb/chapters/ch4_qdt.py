@@ -43,6 +43,7 @@ from qdnb.models.qdt.data import (
     PRUNINGS,
     SOURCES,
     Selection,
+    Trajectories,
     naive_episodes_per_policy,
     prune,
     record,
@@ -50,9 +51,16 @@ from qdnb.models.qdt.data import (
     seed_repertoire,
     select_policies,
 )
-from qdnb.models.qdt.evaluate import goal_scores, play, rollout_chunks
+from qdnb.models.qdt.evaluate import (
+    Targets,
+    demonstrator_targets,
+    goal_scores,
+    imitation,
+    play,
+    rollout_chunks,
+)
 from qdnb.models.qdt.model import QDT, init_params
-from qdnb.models.qdt.train import fit, make_train_step
+from qdnb.models.qdt.train import conditioning_gap, fit, make_train_step
 from qdnb.nets.mlp import MLP
 from qdnb.nets.transformer import make_optimizer
 from qdnb.qd.cvt import cvt_centroids
@@ -90,14 +98,20 @@ class QDTConfig:
     num_seeds: int
     ant_omni: QDTTask
     halfcheetah_uni: QDTTask
-    epochs: int
-    eval_every: int
+    train_steps: int  # gradient steps, the same for every dataset
+    eval_every: int  # gradient steps between evaluations on the goals
     embed_dim: int = 256
     num_layers: int = 4
     num_heads: int = 8
     dropout: float = 0.1
     batch_size: int = 256
     learning_rate: float = 7e-4
+    # the QDT as Algorithm 8 reads (linear head, Flax's initialisation, the raw BD), or
+    # a labelled departure (qdnb.models.qdt.model): "tanh", "torch", True
+    head: str = "linear"
+    init_scheme: str = "flax"
+    bd_scaling: bool = False
+    heldout_episodes: int = 2  # per demonstrator: fresh episodes for the held-out error
     eval_episodes: int = 10
     tiles: int = 4  # the "Tiles" dataset: a tiles x tiles checkerboard, half of it removed
     density_bins: int = 30
@@ -111,11 +125,13 @@ class QDTConfig:
             raise ValueError(
                 f"full_seeds ({self.full_seeds}) must be between 1 and num_seeds ({self.num_seeds})"
             )
-        if self.epochs < 1 or self.eval_every < 1 or self.epochs % self.eval_every:
+        if self.train_steps < 1 or self.eval_every < 1 or self.train_steps % self.eval_every:
             raise ValueError(
-                f"epochs ({self.epochs}) must be a positive multiple of eval_every "
+                f"train_steps ({self.train_steps}) must be a positive multiple of eval_every "
                 f"({self.eval_every})"
             )
+        if self.heldout_episodes < 1:
+            raise ValueError(f"heldout_episodes must be at least 1, not {self.heldout_episodes}")
         if self.embed_dim % self.num_heads:
             raise ValueError(
                 f"embed_dim ({self.embed_dim}) must be a multiple of num_heads ({self.num_heads})"
@@ -207,6 +223,7 @@ class Scores:
     distance: np.ndarray
     spread: np.ndarray
     filled: np.ndarray | None = None
+    imitation: np.ndarray | None = None  # (seeds, zones): the demonstrators' own distance
 
     @property
     def avg_distance(self) -> np.ndarray:
@@ -220,32 +237,39 @@ class Scores:
 
 @dataclass(frozen=True)
 class QDTRun:
-    """One QDT per seed trained on one dataset, seeds on axis 0: the evaluation
-    ``epochs`` and per seed the curves at them, the training ``loss`` per epoch, the
-    ``best_epoch`` (the one kept) and its scores on the goals; for the ``tiles`` and
-    ``upper`` prunings, the mean distance to the goals inside and outside the
-    removed region."""
+    """One QDT per seed trained on one dataset, seeds on axis 0: the gradient ``steps``
+    of the evaluations and per seed the curves at them, the training ``loss`` (mean over
+    the steps before each evaluation), the ``best_step`` (the model kept) and its scores
+    on the goals; its diagnostics (``conditioning_gap``: the held-out action error of
+    the demonstrators' fresh episodes with their own BDs, ``heldout_mse``, and with BDs
+    shuffled between demonstrators, ``shuffled_mse``) and, per zone, its distance to the
+    BD its demonstrator reaches on average when conditioned on it (``imitation``, NaN
+    where the zone has no demonstrator); for the ``tiles`` and ``upper`` prunings, the
+    mean distance to the goals inside and outside the removed region."""
 
-    epochs: np.ndarray  # (evaluations,)
+    steps: np.ndarray  # (evaluations,)
     avg_distance_curve: np.ndarray  # (seeds, evaluations)
     max_fitness_curve: np.ndarray  # (seeds, evaluations)
-    loss: np.ndarray  # (seeds, epochs)
-    best_epoch: np.ndarray  # (seeds,)
+    loss: np.ndarray  # (seeds, evaluations)
+    best_step: np.ndarray  # (seeds,)
     avg_distance: np.ndarray  # (seeds,)
     avg_spread: np.ndarray  # (seeds,)
     distance: np.ndarray  # (seeds, goals)
     spread: np.ndarray  # (seeds, goals)
     dataset_size: np.ndarray  # (seeds,)
     seconds: np.ndarray  # (seeds,)
+    heldout_mse: np.ndarray  # (seeds,)
+    shuffled_mse: np.ndarray  # (seeds,)
+    imitation: np.ndarray  # (seeds, zones)
     avg_distance_removed: np.ndarray | None = None
     avg_distance_kept: np.ndarray | None = None
 
     @classmethod
     def stack(cls, runs: list[dict[str, Any]]) -> QDTRun:
         """The per-seed entries of one dataset's QDTs, stacked on axis 0."""
-        fields = {f.name for f in dataclasses.fields(cls)} - {"epochs"}
+        fields = {f.name for f in dataclasses.fields(cls)} - {"steps"}
         return cls(
-            epochs=np.asarray(runs[0]["epochs"]),
+            steps=np.asarray(runs[0]["steps"]),
             **{k: np.stack([np.asarray(r[k]) for r in runs]) for k in fields if k in runs[0]},
         )
 
@@ -306,6 +330,7 @@ class EnvironmentResult:
                     np.stack([s["distance"] for s in seeds]),
                     np.stack([s["spread"] for s in seeds]),
                     np.array([s["filled"] for s in seeds]) if "filled" in seeds[0] else None,
+                    np.stack([s["imitation"] for s in seeds]) if "imitation" in seeds[0] else None,
                 )
                 for name, seeds in by_name(per_seed, part).items()
             }
@@ -333,27 +358,46 @@ class EnvironmentResult:
         )
 
 
-def untrained_run(cfg: QDTConfig, num_goals: int) -> dict[str, Any]:
+def untrained_run(cfg: QDTConfig, num_goals: int, num_zones: int) -> dict[str, Any]:
     """The record of a QDT that could not be trained, its dataset empty (at `tiny`, a
     generalisation pruning can remove every trajectory of a repertoire that sits in
     one region): the shapes of a trained one's, its scores NaN, ``dataset_size`` 0
-    and ``best_epoch`` 0, so that tables show the gap and the claims count it as not
+    and ``best_step`` 0, so that tables show the gap and the claims count it as not
     holding."""
-    evaluations = np.arange(cfg.eval_every, cfg.epochs + 1, cfg.eval_every)
+    evaluations = np.arange(cfg.eval_every, cfg.train_steps + 1, cfg.eval_every)
     nan = lambda *shape: np.full(shape, np.nan)
     return {
-        "epochs": evaluations,
+        "steps": evaluations,
         "avg_distance_curve": nan(evaluations.size),
         "max_fitness_curve": nan(evaluations.size),
-        "loss": nan(cfg.epochs),
-        "best_epoch": 0,
+        "loss": nan(evaluations.size),
+        "best_step": 0,
         "avg_distance": np.nan,
         "avg_spread": np.nan,
         "distance": nan(num_goals),
         "spread": nan(num_goals),
         "dataset_size": 0,
         "seconds": 0.0,
+        "heldout_mse": np.nan,
+        "shuffled_mse": np.nan,
+        "imitation": nan(num_zones),
     }
+
+
+def qdt_model(cfg: QDTConfig, env) -> QDT:
+    """The chapter's QDT for ``env`` (Table 4.3 at ``paper``), with the config's reading
+    of the head, the initialisation and the BD's scaling."""
+    return QDT(
+        env.action_size,
+        env.episode_length,
+        cfg.embed_dim,
+        cfg.num_layers,
+        cfg.num_heads,
+        cfg.dropout,
+        head=cfg.head,
+        init_scheme=cfg.init_scheme,
+        bd_box=(tuple(env.descriptor_low), tuple(env.descriptor_high)) if cfg.bd_scaling else None,
+    )
 
 
 def num_seeds_of(repertoires: dict[str, Any]) -> int:
@@ -369,17 +413,28 @@ def goals_in_a_dry_run(num_goals: int) -> int:
     return max(d for d in range(1, DRY_RUN_GOALS + 1) if num_goals % d == 0)
 
 
-def run_environment(
-    cfg: QDTConfig,
-    repro_cfg: ReproducibilityConfig,
-    env_name: str,
-    repertoires: dict[str, Any],
-    key: jax.Array,
-    progress: bool = True,
-) -> EnvironmentResult:
-    """Every experiment of the chapter on ``env_name``.  ``repertoires[method]``
-    are the Chapter 4 repertoires (stacked over its seeds); QDT seed ``i`` uses
-    repertoire seed ``i`` (cycling when the Chapter 4 run has fewer seeds)."""
+@dataclass(frozen=True)
+class Setting:
+    """What the experiments on one environment share: its ``task`` settings, the
+    environment, the selection ``zones`` and the evaluation ``goals`` (their own CVTs
+    of the BD box ``low``, ``high``), the players of test and of recorded episodes,
+    and the key of the goals and of the seeds."""
+
+    task: QDTTask
+    env: Any
+    zones: jax.Array
+    goals: jax.Array
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    player: Player
+    recorder: Player
+    k_goals: jax.Array
+    k_seeds: jax.Array
+
+
+def setting(
+    cfg: QDTConfig, repro_cfg: ReproducibilityConfig, env_name: str, key: jax.Array
+) -> Setting:
     task = cfg.task(env_name)
     env = repro_cfg.make_env(env_name)
     network = MLP(repro_cfg.policy_hidden + (env.action_size,))
@@ -391,14 +446,40 @@ def run_environment(
     recorder = Player(
         env, network, chunk=repro_cfg.env_batch, record=True, name=f"{env_name} dataset episodes"
     )
-    model = QDT(
-        env.action_size,
-        env.episode_length,
-        cfg.embed_dim,
-        cfg.num_layers,
-        cfg.num_heads,
-        cfg.dropout,
+    return Setting(task, env, zones, goals, low, high, player, recorder, k_goals, k_seeds)
+
+
+def demonstrations(
+    cfg: QDTConfig, where: Setting, repertoire: Any, k_sel: jax.Array, k_rec: jax.Array
+) -> tuple[Selection, Trajectories, Trajectories, Targets]:
+    """Section 4.4.4 on one repertoire: the zone selection, the dataset its kept
+    policies play, ``heldout_episodes`` fresh episodes of each (the held-out error's)
+    and each demonstrator's own BD (``demonstrator_targets``, the imitation test's)."""
+    task = where.task
+    sel = select_policies(repertoire, where.zones, where.player, task.selection_episodes, k_sel)
+    data = record(repertoire, sel.cells, task.episodes_per_policy, where.recorder, k_rec)
+    heldout = record(
+        repertoire, sel.cells, cfg.heldout_episodes, where.recorder, jax.random.fold_in(k_rec, 1)
     )
+    targets = demonstrator_targets(data, sel, task.zones, (where.low, where.high))
+    return sel, data, heldout, targets
+
+
+def run_environment(
+    cfg: QDTConfig,
+    repro_cfg: ReproducibilityConfig,
+    env_name: str,
+    repertoires: dict[str, Any],
+    key: jax.Array,
+    progress: bool = True,
+) -> EnvironmentResult:
+    """Every experiment of the chapter on ``env_name``.  ``repertoires[method]``
+    are the Chapter 4 repertoires (stacked over its seeds); QDT seed ``i`` uses
+    repertoire seed ``i`` (cycling when the Chapter 4 run has fewer seeds)."""
+    where = setting(cfg, repro_cfg, env_name, key)
+    task, env, zones, goals = where.task, where.env, where.zones, where.goals
+    player, low, high, k_goals = where.player, where.low, where.high, where.k_goals
+    model = qdt_model(cfg, env)
     # a dry run plays some of the goals, each independent of the others, and counts its
     # time for all of them (qdnb.core.dryrun)
     played = dryrun.count(
@@ -416,6 +497,10 @@ def run_environment(
         k_goals,
     )
     play_goals = dryrun.compiled(f"{env_name} QDT rollouts: compilation", play_goals, *shapes)
+    # the demonstrators' own BDs, one target per zone (padded: one compilation)
+    play_targets = jax.jit(
+        lambda params, targets, k: play(env, model, params, targets, k, cfg.eval_episodes)
+    )
     step = make_train_step(
         model, make_optimizer(cfg.learning_rate)
     )  # one compilation for every dataset
@@ -423,11 +508,11 @@ def run_environment(
         name: removed_region(name, np.asarray(goals), low, high, cfg.tiles) for name in PRUNINGS
     }
 
-    def train(data, k_train, k_eval, desc, full_size):
+    def train(data, heldout, targets, k_train, k_eval, desc):
         if data.size == 0:  # a pruning that removed every trajectory: nothing to learn from
-            return untrained_run(cfg, len(goals))
+            return untrained_run(cfg, len(goals), task.zones)
 
-        def evaluate(params, epoch):
+        def evaluate(params, step_done):
             s = goal_scores(goals[:played], play_goals(params, k_eval))
             s = {k: np.tile(v, len(goals) // played) for k, v in s.items()}  # (a dry run's)
             return {
@@ -443,7 +528,7 @@ def run_environment(
             model,
             data,
             k_train,
-            cfg.epochs,
+            cfg.train_steps,
             cfg.batch_size,
             cfg.learning_rate,
             cfg.eval_every,
@@ -452,22 +537,25 @@ def run_environment(
             progress=progress,
             desc=desc,
             program=f"{env_name} QDT rollouts",
-            full_size=full_size,
             evaluation_share=len(goals) / played,
         )
-        best = next(e for e in res.evaluations if e["epoch"] == res.best_epoch)
+        best = next(e for e in res.evaluations if e["step"] == res.best_step)
+        gap = conditioning_gap(model, res.params, heldout, k_eval)
         return {
-            "epochs": np.array([e["epoch"] for e in res.evaluations]),
+            "steps": np.array([e["step"] for e in res.evaluations]),
             "avg_distance_curve": np.array([e["avg_distance"] for e in res.evaluations]),
             "max_fitness_curve": np.array([e["max_fitness"] for e in res.evaluations]),
             "loss": np.array(res.losses),
-            "best_epoch": res.best_epoch,
+            "best_step": res.best_step,
             "avg_distance": best["avg_distance"],
             "avg_spread": best["avg_spread"],
             "distance": best["distance"],
             "spread": best["spread"],
             "dataset_size": data.size,
             "seconds": time.time() - start,
+            "heldout_mse": gap["heldout_mse"],
+            "shuffled_mse": gap["shuffled_mse"],
+            "imitation": imitation(targets, play_targets(res.params, targets.padded, k_eval)),
         }
 
     per_seed = []
@@ -478,7 +566,7 @@ def run_environment(
     with dryrun.repeats(cfg.num_seeds / seeds_run):
         for i in range(seeds_run):
             k_sel, k_rec, k_acc, k_train, k_eval, k_prune = jax.random.split(
-                jax.random.fold_in(k_seeds, i), 6
+                jax.random.fold_in(where.k_seeds, i), 6
             )
             full = i < cfg.num_full_seeds
             sources = SOURCES if full else CLAIM_SOURCES
@@ -499,9 +587,11 @@ def run_environment(
                     "spread": np.asarray(acc.spread),
                     "filled": int(np.sum(np.asarray(reps[m].filled))),
                 }
-            data, full_size = {}, {}
+            data, heldout, targets = {}, {}, {}
             for m in sources:  # Section 4.4.4
-                sel = select_policies(reps[m], zones, player, task.selection_episodes, k_sel)
+                sel, data[m], heldout[m], targets[m] = demonstrations(
+                    cfg, where, reps[m], k_sel, k_rec
+                )
                 seed["selection"][m] = sel
                 teachers = reps[m].replace(
                     fitnesses=jnp.full_like(reps[m].fitnesses, -jnp.inf)
@@ -512,21 +602,24 @@ def run_environment(
                 seed["teachers"][m] = {
                     "distance": np.asarray(acc.distance),
                     "spread": np.asarray(acc.spread),
+                    "imitation": targets[m].distance,
                 }
-                data[m] = record(reps[m], sel.cells, task.episodes_per_policy, recorder, k_rec)
-                # the dataset's size in the full run (a dry run records fewer episodes)
-                full_size[m] = sel.cells.size * task.episodes_per_policy
-            if full:
+            if full:  # QDT(Naive): every ME-LS policy; its diagnostics on ME-LS's demonstrators
                 every = np.flatnonzero(np.asarray(reps["ME-LS"].filled))
                 naive_epp = naive_episodes_per_policy(
                     seed["selection"]["ME-LS"].cells.size, task.episodes_per_policy, every.size
                 )
-                data[NAIVE] = record(reps["ME-LS"], every, naive_epp, recorder, k_rec)
-                full_size[NAIVE] = every.size * naive_epp
+                data[NAIVE] = record(reps["ME-LS"], every, naive_epp, where.recorder, k_rec)
+                heldout[NAIVE], targets[NAIVE] = heldout["ME-LS"], targets["ME-LS"]
                 seed["naive_episodes_per_policy"] = naive_epp
             for name in data:
                 seed["qdt"][name] = train(
-                    data[name], k_train, k_eval, f"{env_name} seed {i} QDT({name})", full_size[name]
+                    data[name],
+                    heldout[name],
+                    targets[name],
+                    k_train,
+                    k_eval,
+                    f"{env_name} seed {i} QDT({name})",
                 )
             pruned = (
                 {
@@ -539,13 +632,13 @@ def run_environment(
                 else {}
             )
             for name in pruned:
-                kept = pruned[name].size / max(data["ME-LS"].size, 1)
                 res = train(
                     pruned[name],
+                    heldout["ME-LS"],
+                    targets["ME-LS"],
                     k_train,
                     k_eval,
                     f"{env_name} seed {i} QDT(ME-LS, {name})",
-                    round(full_size["ME-LS"] * kept),
                 )
                 if name in ("tiles", "upper"):
                     res["avg_distance_removed"] = float(res["distance"][removed[name]].mean())
@@ -690,8 +783,11 @@ def summary_results(cfg: QDTConfig, results_by_env: dict[str, EnvironmentResult]
             name: {
                 "avg_distance": float(q.avg_distance.mean()),
                 "avg_spread": float(q.avg_spread.mean()),
-                "best_epoch": int(np.median(q.best_epoch)),
-                "seeds": len(q.best_epoch),
+                "best_step": int(np.median(q.best_step)),
+                "seeds": len(q.best_step),
+                "heldout_mse": float(np.mean(q.heldout_mse)),
+                "shuffled_mse": float(np.mean(q.shuffled_mse)),
+                "imitation": float(np.nanmean(q.imitation)),
             }
             | {
                 k: selection[name][k]
@@ -726,8 +822,8 @@ SCALES = {
     "tiny": QDTConfig(  # two seeds, one full: every code path runs
         num_seeds=2,
         full_seeds=1,
-        epochs=2,
-        eval_every=1,
+        train_steps=4,
+        eval_every=2,
         embed_dim=16,
         num_layers=1,
         num_heads=2,
@@ -754,8 +850,8 @@ SCALES = {
     "small": QDTConfig(
         num_seeds=3,
         full_seeds=1,
-        epochs=10,
-        eval_every=5,
+        train_steps=400,
+        eval_every=200,
         embed_dim=64,
         num_layers=1,
         num_heads=2,
@@ -768,8 +864,10 @@ SCALES = {
     ),
     "paper": QDTConfig(
         num_seeds=3,
-        epochs=100,
-        eval_every=5,
+        # Section 4.5.1: 100 epochs of 300,000 trajectories in batches of 256 (117,180
+        # steps), evaluated every 5 epochs
+        train_steps=117_180,
+        eval_every=5_859,
         ant_omni=QDTTask(zones=100, goals=100, selection_episodes=10, episodes_per_policy=3000),
         halfcheetah_uni=QDTTask(
             zones=50, goals=50, selection_episodes=10, episodes_per_policy=6000

@@ -17,10 +17,21 @@ from flax import linen as nn
 Cache = tuple[tuple[jax.Array, jax.Array], ...]
 
 
+# the outputs a pass computes: every ``stride``-th token from ``offset`` (the last layer of a
+# training pass needs only the tokens a loss reads: the QDT's O_t tokens)
+Queries = tuple[int, int] | None  # (offset, stride)
+
+
 def causal_mask(num_new: int, cache_length: int, start: jax.Array | int) -> jax.Array:
     """``mask[i, j]``: whether the new token ``i`` (at position ``start + i``)
     may attend to position ``j`` of the (cached) sequence, i.e. ``j <= start + i``."""
-    return jnp.arange(cache_length)[None, :] <= (start + jnp.arange(num_new))[:, None]
+    return mask_at(start + jnp.arange(num_new), cache_length)
+
+
+def mask_at(positions: jax.Array, length: int) -> jax.Array:
+    """``mask[i, j]``: whether the query at ``positions[i]`` may attend to position
+    ``j`` of a sequence of ``length`` (``j <= positions[i]``)."""
+    return jnp.arange(length)[None, :] <= positions[:, None]
 
 
 class CausalSelfAttention(nn.Module):
@@ -34,7 +45,10 @@ class CausalSelfAttention(nn.Module):
         cache: tuple[jax.Array, jax.Array] | None,
         start: jax.Array | int,
         deterministic: bool,
+        queries: Queries = None,
     ):
+        """``queries``: compute the outputs at those tokens only (a full pass: no
+        ``cache``), each attending to every token up to its own position."""
         b, n, d = x.shape
         if d % self.num_heads:
             raise ValueError(f"embedding size {d} is not a multiple of num_heads {self.num_heads}")
@@ -51,11 +65,16 @@ class CausalSelfAttention(nn.Module):
             values = jax.lax.dynamic_update_slice(
                 cache[1], v.astype(cache[1].dtype), (0, start, 0, 0)
             )
-        mask = causal_mask(n, keys.shape[1], start)
+        if queries is None:
+            mask = causal_mask(n, keys.shape[1], start)
+        else:
+            offset, stride = queries
+            q = q[:, offset::stride]
+            mask = mask_at(offset + stride * jnp.arange(q.shape[1]), keys.shape[1])
         logits = jnp.einsum("bqhd,bkhd->bhqk", q, keys) / math.sqrt(head)
         weights = jax.nn.softmax(jnp.where(mask, logits, -jnp.inf), axis=-1)
         weights = nn.Dropout(self.dropout)(weights, deterministic=deterministic)
-        out = jnp.einsum("bhqk,bkhd->bqhd", weights, values).reshape(b, n, d)
+        out = jnp.einsum("bhqk,bkhd->bqhd", weights, values).reshape(b, q.shape[1], d)
         out = nn.Dropout(self.dropout)(nn.Dense(d, name="proj")(out), deterministic=deterministic)
         return out, (keys, values)
 
@@ -67,23 +86,29 @@ class Block(nn.Module):
     dropout: float
 
     @nn.compact
-    def __call__(self, x, cache, start, deterministic):
+    def __call__(self, x, cache, start, deterministic, queries: Queries = None):
         d = x.shape[-1]
         attended, cache = CausalSelfAttention(self.num_heads, self.dropout, name="attn")(
-            nn.LayerNorm(name="ln_attn")(x), cache, start, deterministic
+            nn.LayerNorm(name="ln_attn")(x), cache, start, deterministic, queries
         )
+        if queries is not None:  # the residual stream of the queried tokens only
+            x = x[:, queries[0] :: queries[1]]
         x = x + attended
         h = nn.Dense(4 * d, name="fc")(nn.LayerNorm(name="ln_mlp")(x))
         h = nn.Dense(d, name="fc_out")(nn.relu(h))
         return x + nn.Dropout(self.dropout)(h, deterministic=deterministic), cache
 
 
-def run_blocks(blocks, x, caches, start, deterministic):
+def run_blocks(blocks, x, caches, start, deterministic, queries: Queries = None):
     """Apply ``blocks`` in order, each with its own cache (``None`` for a full pass);
-    returns the output and the new caches.  Shared by the QDT and the FLT."""
+    returns the output and the new caches.  Shared by the QDT and the FLT.  With
+    ``queries``, the last block computes the outputs at those tokens only: the same
+    values there (nothing after a token depends on it), a third of the last layer's work
+    for the QDT's loss, which reads one token in three."""
     new_caches = []
-    for block, cache in zip(blocks, caches):
-        x, cache = block(x, cache, start, deterministic)
+    for i, (block, cache) in enumerate(zip(blocks, caches)):
+        last = i == len(blocks) - 1
+        x, cache = block(x, cache, start, deterministic, queries if last else None)
         new_caches.append(cache)
     return x, tuple(new_caches)
 

@@ -11,6 +11,7 @@ prefix every step (the reference the cache is tested and timed against).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -20,6 +21,7 @@ import numpy as np
 from qdnb.core.evaluation import Evaluation
 from qdnb.envs.base import Env
 from qdnb.envs.rollout import tally_evaluation, tally_start, tally_step
+from qdnb.models.qdt.data import Selection, Trajectories
 from qdnb.models.qdt.model import QDT, TOKENS_PER_STEP
 from qdnb.qd.low_spread import spread
 
@@ -147,3 +149,40 @@ def goal_scores(goals: jax.Array, ev: Evaluation) -> dict[str, np.ndarray]:
         "spread": np.asarray(jax.vmap(spread)(ev.descriptor)),
         "fitness": np.asarray(jnp.mean(ev.fitness, axis=1)),
     }
+
+
+# ----- does the QDT imitate its demonstrators? -----
+
+
+@dataclass(frozen=True)
+class Targets:
+    """One target per zone: the BD its demonstrator reaches on average over its
+    dataset episodes (``padded``, ``(zones, d)``; the box's centre where the zone has
+    no demonstrator, ``valid`` false), and the demonstrator's own mean distance to it
+    (``distance``, NaN where none): how well the QDT could imitate it."""
+
+    padded: jax.Array
+    valid: np.ndarray
+    distance: np.ndarray
+
+
+def demonstrator_targets(data: Trajectories, selection: Selection, num_zones: int, box) -> Targets:
+    """``Targets`` of the demonstrators ``selection`` kept, from their episodes in
+    ``data`` (recorded by ``record`` from ``selection.cells``)."""
+    low, high = (np.asarray(b, np.float32) for b in box)
+    padded = np.tile((low + high) / 2, (num_zones, 1))
+    distance = np.full(num_zones, np.nan)
+    bd, policy = np.asarray(data.bd), np.asarray(data.policy)
+    for cell, zone in zip(selection.cells, selection.zones):
+        mine = bd[policy == cell]
+        padded[zone] = mine.mean(axis=0)
+        distance[zone] = np.linalg.norm(mine - padded[zone], axis=-1).mean()
+    return Targets(jnp.asarray(padded), ~np.isnan(distance), distance)
+
+
+def imitation(targets: Targets, ev: Evaluation) -> np.ndarray:
+    """Per zone, the mean distance between the target and the BDs the QDT reached
+    when conditioned on it (``ev`` from ``play`` on ``targets.padded``); NaN where the
+    zone has no demonstrator."""
+    d = np.asarray(jnp.mean(jnp.linalg.norm(ev.descriptor - targets.padded[:, None], axis=-1), 1))
+    return np.where(targets.valid, d, np.nan)
