@@ -73,6 +73,7 @@ def test_qdt_claim_checks_on_hand_made_seeds():
     vs_qdt = checks["QDT(ME-LS) closer to the goals than QDT (ME)"]
     assert vs_rep["holds"] and vs_rep["seeds where it holds"] == "2/3"  # 1.0 < 1.83 on the mean
     assert vs_qdt["holds"] and vs_qdt["QDT (ME)"] == round(5.5 / 3, 4)
+    assert vs_qdt["QDT (ME) range"] == "0.5–3" and vs_rep["ME range"] == "0.5–3"
     worse = result((1.0, 0.9, 0.9), (1.0, 5.0, 5.0), (1.0, 0.8, 0.8))
     assert not any(c["holds"] for c in ch4_qdt.claim_checks({"toy": worse}))  # mean yes, 1/3 seeds
 
@@ -82,14 +83,17 @@ def test_qdt_results_stack_a_quantity_over_the_seeds_that_have_it():
 
     def qdt(distance):
         return {
-            "epochs": np.array([1, 2]),
+            "steps": np.array([100, 200]),
             **{k: np.zeros(2) for k in ("avg_distance_curve", "max_fitness_curve", "loss")},
             **{k: np.full(3, distance) for k in ("distance", "spread")},
-            "best_epoch": 2,
+            "best_step": 200,
             "avg_distance": distance,
             "avg_spread": 0.0,
             "dataset_size": 10,
             "seconds": 1.0,
+            "heldout_mse": 0.1,
+            "shuffled_mse": 0.3,
+            "imitation": np.full(4, distance),
         }
 
     def seed(full, **qdts):
@@ -102,8 +106,11 @@ def test_qdt_results_stack_a_quantity_over_the_seeds_that_have_it():
     )
     assert res.qdt["ME"].avg_distance.tolist() == [1.0, 2.0]
     assert res.qdt["Naive"].avg_distance.tolist() == [4.0]
-    assert res.qdt["ME"].distance.shape == (2, 3) and res.qdt["ME"].epochs.tolist() == [1, 2]
+    assert res.qdt["ME"].distance.shape == (2, 3) and res.qdt["ME"].steps.tolist() == [100, 200]
     assert res.full_seeds == 1 and isinstance(res.qdt["ME"], QDTRun)
+    assert (
+        res.qdt["ME"].imitation.shape == (2, 4) and res.qdt["ME"].shuffled_mse.tolist() == [0.3] * 2
+    )
     assert res.qdt["ME"].avg_distance_removed is None  # only the tiles and upper prunings
 
 

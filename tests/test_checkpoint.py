@@ -233,11 +233,11 @@ def test_qdt_training_resumes_bit_for_bit(tmp_path):
     step = make_train_step(model, make_optimizer(1e-3))
     scores = {1: 2.0, 2: 1.0, 3: 3.0, 4: 1.5}
 
-    def evaluate(params, epoch, stop_at=None):
-        if epoch == stop_at:
+    def evaluate(params, step_done, stop_at=None):
+        if step_done == stop_at:
             raise Stop
-        d = np.full(3, scores[epoch], np.float32) / 3
-        return {"avg_distance": scores[epoch], "distance": d}
+        d = np.full(3, scores[step_done], np.float32) / 3
+        return {"avg_distance": scores[step_done], "distance": d}
 
     def run(desc=None, stop_at=None):
         return fit(
@@ -248,12 +248,12 @@ def test_qdt_training_resumes_bit_for_bit(tmp_path):
     reference = run()
     checkpoint.activate(policy(tmp_path))
     with pytest.raises(Stop):
-        run("qdt", stop_at=3)  # epochs 1 and 2 saved
+        run("qdt", stop_at=3)  # steps 1 and 2 saved
     checkpoint.activate(policy(tmp_path))
-    resumed = run("qdt", stop_at=1)  # resumes after epoch 2: never evaluates epoch 1 again
-    assert resumed.losses == reference.losses and resumed.best_epoch == reference.best_epoch == 2
+    resumed = run("qdt", stop_at=1)  # resumes after step 2: never evaluates step 1 again
+    assert resumed.losses == reference.losses and resumed.best_step == reference.best_step == 2
     assert_same(resumed.params, reference.params)
-    assert [e["epoch"] for e in resumed.evaluations] == [1, 2, 3, 4]
+    assert [e["step"] for e in resumed.evaluations] == [1, 2, 3, 4]
     for a, b in zip(resumed.evaluations, reference.evaluations):
         assert a["avg_distance"] == b["avg_distance"]
         np.testing.assert_array_equal(a["distance"], b["distance"])

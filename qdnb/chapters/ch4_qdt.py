@@ -707,6 +707,8 @@ def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str,
                     "claim": f"QDT(ME-LS) closer to the goals than {other}",
                     "QDT(ME-LS)": round(float(a.mean()), 4),
                     other: round(float(b.mean()), 4),
+                    "QDT(ME-LS) range": f"{a.min():.3g}–{a.max():.3g}",
+                    f"{other} range": f"{b.min():.3g}–{b.max():.3g}",
                     "seeds where it holds": f"{wins}/{a.size}",
                     "holds": bool(a.mean() < b.mean() and wins > a.size / 2),
                 }
@@ -760,7 +762,8 @@ def summary_results(cfg: QDTConfig, results_by_env: dict[str, EnvironmentResult]
                 f"{ENV_LABELS[c['environment']]}: the QDT trained on ME-LS's data lands closer "
                 f"to the goals than {QDT_CLAIM_RIVALS[other]} (Table 4.4)",
                 c["holds"],
-                f"{c['QDT(ME-LS)']:.4g} vs {c[other]:.4g} (mean); holds on "
+                f"{c['QDT(ME-LS)']:.3g} ({c['QDT(ME-LS) range']}) vs {c[other]:.3g} "
+                f"({c[f'{other} range']}) (mean, range over seeds); holds on "
                 f"{c['seeds where it holds']} seeds",
             )
             for c in checks
