@@ -218,6 +218,9 @@ def curve(args) -> None:
     repro_cfg = config("ch4_reproducibility", args.scale)
     if args.batch:
         cfg = replace(cfg, batch_size=args.batch)
+    if args.episodes_per_policy:
+        task = replace(cfg.task(args.env), episodes_per_policy=args.episodes_per_policy)
+        cfg = replace(cfg, **{args.env: task})
     repertoires, status = load_or_recompute_repertoires(repro_cfg, args.scale, seed=0)
     # the chapter's keys for seed 0 of this environment (ch4_qdt.run_environments)
     env_key = jax.random.fold_in(jax.random.PRNGKey(0), cfg.environments.index(args.env))
@@ -252,7 +255,10 @@ def curve(args) -> None:
         earlier = json.loads(args.out.read_text())
         out["variants"] = earlier.get("variants", {})
     for name in args.variants:
-        model = qdt_model(replace(cfg, **CURVE_VARIANTS[name]), where.env)
+        fields = CURVE_VARIANTS[name]
+        if args.episodes_per_policy:  # the same reading on a larger dataset
+            name = f"{name}, {args.episodes_per_policy} episodes per demonstrator"
+        model = qdt_model(replace(cfg, **fields), where.env)
         play_goals = jax.jit(
             lambda p, k: play(where.env, model, p, where.goals, k, cfg.eval_episodes)
         )
@@ -275,6 +281,8 @@ def curve(args) -> None:
                     "avg_distance": float(goals["distance"].mean()),
                 }
             )
+            out["variants"][name] = {"fields": fields, "evaluations": rows, "finished": False}
+            atomic_write_json(args.out, out)  # a run cut short keeps its evaluations
             print(
                 f"{name} step {step_done}: "
                 + ", ".join(f"{k} {v:.4g}" for k, v in rows[-1].items() if k != "step"),
@@ -300,7 +308,8 @@ def curve(args) -> None:
         steps, held = [r["step"] for r in rows], [r["heldout_mse"] for r in rows]
         flat_at, flat = flattening_step(steps, held)
         out["variants"][name] = {
-            "fields": CURVE_VARIANTS[name],
+            "fields": fields,
+            "dataset_size": data.size,
             "evaluations": rows,
             "best_step": res.best_step,
             "flattening_step": flat_at,
@@ -310,6 +319,7 @@ def curve(args) -> None:
             / args.eval_every,
             "seconds_per_evaluation": float(np.median(clock["eval_s"][1:] or clock["eval_s"])),
             "first_interval_seconds": clock["train_s"][0],
+            "finished": True,
         }
         print(
             f"{name}: held-out error flattens at step {flat_at} "
@@ -330,6 +340,9 @@ def main() -> None:
     c.add_argument("--steps", type=int, default=3000)
     c.add_argument("--eval-every", type=int, default=250)
     c.add_argument("--batch", type=int, default=0, help="batch size (default: small's)")
+    c.add_argument(
+        "--episodes-per-policy", type=int, default=0, help="dataset episodes (default: small's)"
+    )
     c.add_argument(
         "--variants", nargs="+", default=list(CURVE_VARIANTS), choices=list(CURVE_VARIANTS)
     )

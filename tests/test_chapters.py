@@ -132,3 +132,10 @@ def test_qdt_data_floor_selection_summary_and_nearest_half_on_hand_made_values()
     entry = ch4_qdt.selection_summary(res)["ME"]
     assert entry["zones_with_data"] == 1.5 and entry["demonstrator_hit_rate"] == 0.375
     assert entry["seeds"] == {"zones_with_data": [2, 1], "demonstrator_hit_rate": [0.75, 0.0]}
+
+
+def test_qdt_summaries_average_the_finite_values_only(recwarn):
+    from qdnb.chapters.ch4_qdt import mean_of_finite
+
+    assert mean_of_finite([np.nan, 1.0, 3.0]) == 2.0
+    assert np.isnan(mean_of_finite([np.nan, np.nan])) and not recwarn.list  # no warning

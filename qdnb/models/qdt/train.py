@@ -55,10 +55,13 @@ def loss_and_grads(
 
 def action_mse(model: QDT, params: Any, data: Trajectories, batch_size: int = 64) -> float:
     """``loss_fn`` over every valid step of ``data`` (no dropout), in minibatches of
-    ``batch_size`` trajectories: the held-out error of the predicted actions."""
+    ``batch_size`` trajectories: the held-out error of the predicted actions.  The last
+    minibatch is filled up with invalid copies, so that every dataset compiles once."""
     total = count = 0.0
     for lo in range(0, data.size, batch_size):
-        batch = jax.tree.map(lambda x: x[lo : lo + batch_size], data)
+        rows = np.arange(lo, lo + batch_size) % data.size
+        batch = jax.tree.map(lambda x: x[rows], data)
+        batch = batch.replace(valid=batch.valid & (lo + np.arange(batch_size) < data.size)[:, None])
         valid = float(jnp.sum(batch.valid))
         total += float(_mse(model, params, batch)) * valid
         count += valid
