@@ -135,7 +135,7 @@ def test_qdt_data_floor_selection_summary_and_nearest_half_on_hand_made_values()
 
 
 def test_qdt_summaries_average_the_finite_values_only(recwarn):
-    from qdnb.chapters.ch4_qdt import mean_of_finite
+    from qdnb.core.claims import finite_mean
 
-    assert mean_of_finite([np.nan, 1.0, 3.0]) == 2.0
-    assert np.isnan(mean_of_finite([np.nan, np.nan])) and not recwarn.list  # no warning
+    assert finite_mean([np.nan, 1.0, 3.0]) == 2.0
+    assert np.isnan(finite_mean([np.nan, np.nan])) and not recwarn.list  # no warning

@@ -24,7 +24,6 @@ from qdnb.chapters.ch3_qdpg import (
     QDPGConfig,
     beats,
     build_algorithms,
-    finite_mean,
     load_or_recompute_qdpg,
     method_summaries,
     per_seed,
@@ -33,6 +32,7 @@ from qdnb.chapters.ch3_qdpg import (
 from qdnb.chapters.ch3_qdpg import METHODS as CHAPTER_METHODS
 from qdnb.chapters.ch3_qdpg import SCALES as QDPG_SCALES
 from qdnb.core import claims as claim_records
+from qdnb.core.claims import finite_mean
 from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
 

@@ -31,12 +31,12 @@ from qdnb.chapters.ch3_qdpg import (
     EnvironmentResult,
     MethodResult,
     QDPGConfig,
-    finite_mean,
     load_or_recompute_qdpg,
     run_environment,
 )
 from qdnb.core import claims as claim_records
 from qdnb.core import dryrun
+from qdnb.core.claims import finite_mean
 
 EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
 # this page's methods: their builders in the chapter's method registry

@@ -27,6 +27,7 @@ import numpy as np
 
 from qdnb.core import claims as claim_records
 from qdnb.core import health, paths
+from qdnb.core.claims import finite_mean
 from qdnb.core.config import config_hash
 from qdnb.core.evaluation import Algorithm
 from qdnb.core.io import load_arrays, load_summary, save_arrays
@@ -679,12 +680,6 @@ def steps_to_exit(result: MethodResult) -> np.ndarray:
 
 
 # ----- the chapter's claims and summary -----
-
-
-def finite_mean(values: np.ndarray) -> float:
-    """The mean over the seeds that stayed finite (a diverged seed is NaN); NaN if none did."""
-    finite = np.asarray(values, float)[np.isfinite(values)]
-    return float(finite.mean()) if finite.size else float("nan")
 
 
 def mean_text(values: np.ndarray, digits: int = 1, diverged: int | None = None) -> str:

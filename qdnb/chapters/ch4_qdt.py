@@ -32,6 +32,7 @@ from qdnb.chapters.ch4_reproducibility import (
 from qdnb.chapters.ch4_reproducibility import run_environment as run_chapter4
 from qdnb.core import claims as claim_records
 from qdnb.core import dryrun, paths
+from qdnb.core.claims import finite_mean
 from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
 from qdnb.core.loops import map_concurrently
@@ -716,13 +717,6 @@ def claim_checks(results_by_env: dict[str, EnvironmentResult]) -> list[dict[str,
     return checks
 
 
-def mean_of_finite(x) -> float:
-    """The mean of the finite values of ``x``; NaN (without a warning) when none is."""
-    x = np.asarray(x, float)
-    finite = x[np.isfinite(x)]
-    return float(finite.mean()) if finite.size else float("nan")
-
-
 def selection_summary(res: EnvironmentResult) -> dict[str, dict[str, Any]]:
     """Per source, the zone selection (Section 4.4.4): the zones that got a
     demonstrator and the share of the kept policies' selection episodes that landed
@@ -796,9 +790,9 @@ def summary_results(cfg: QDTConfig, results_by_env: dict[str, EnvironmentResult]
                 "best_step": int(np.median(q.best_step)),
                 "seeds": len(q.best_step),
                 # (a seed whose data has a single demonstrator has no shuffled error)
-                "heldout_mse": mean_of_finite(q.heldout_mse),
-                "shuffled_mse": mean_of_finite(q.shuffled_mse),
-                "imitation": mean_of_finite(q.imitation),
+                "heldout_mse": finite_mean(q.heldout_mse),
+                "shuffled_mse": finite_mean(q.shuffled_mse),
+                "imitation": finite_mean(q.imitation),
             }
             | {
                 k: selection[name][k]

@@ -8,6 +8,8 @@ the claim measures) and the ``numbers`` behind the verdict.
 
 from __future__ import annotations
 
+import numpy as np
+
 HOLDS, FAILS, CANNOT_SHOW = "holds", "fails", "cannot show"
 STATUSES = (HOLDS, FAILS, CANNOT_SHOW)
 
@@ -21,6 +23,13 @@ def record(claim_id: str, claim: str, status: str | bool, numbers: str) -> dict[
     if not claim_id or not claim:
         raise ValueError("a claim needs an id and a text")
     return {"id": claim_id, "claim": claim, "status": status, "numbers": numbers}
+
+
+def finite_mean(values) -> float:
+    """The mean over the seeds whose value is finite (a diverged seed, or one that could
+    not measure it, is NaN); NaN, without a warning, if none is."""
+    finite = np.asarray(values, float)[np.isfinite(np.asarray(values, float))]
+    return float(finite.mean()) if finite.size else float("nan")
 
 
 def held(claims: list[dict[str, str]]) -> int:

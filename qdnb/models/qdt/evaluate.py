@@ -162,8 +162,11 @@ class Targets:
     (``distance``, NaN where none): how well the QDT could imitate it."""
 
     padded: jax.Array
-    valid: np.ndarray
     distance: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return ~np.isnan(self.distance)
 
 
 def demonstrator_targets(data: Trajectories, selection: Selection, num_zones: int, box) -> Targets:
@@ -177,7 +180,7 @@ def demonstrator_targets(data: Trajectories, selection: Selection, num_zones: in
         mine = bd[policy == cell]
         padded[zone] = mine.mean(axis=0)
         distance[zone] = np.linalg.norm(mine - padded[zone], axis=-1).mean()
-    return Targets(jnp.asarray(padded), ~np.isnan(distance), distance)
+    return Targets(jnp.asarray(padded), distance)
 
 
 def imitation(targets: Targets, ev: Evaluation) -> np.ndarray:
