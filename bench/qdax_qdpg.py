@@ -202,9 +202,12 @@ def one_seed(seed: int, iterations: int) -> dict:
 
     history, steps_to_exit, carry = [], None, (repertoire, emitter_state, key)
     steps_per_iteration = batch * s["episode_length"]
+    seconds = []
     for i in range(iterations):
+        tick = time.perf_counter()
         carry, m = update(carry, None)
         m = {k: float(v) for k, v in m.items()}
+        seconds.append(time.perf_counter() - tick)
         history.append(m)
         if steps_to_exit is None and m["exit_in_grid"]:
             steps_to_exit = (i + 2) * steps_per_iteration  # the initial batch, then i + 1
@@ -216,6 +219,8 @@ def one_seed(seed: int, iterations: int) -> dict:
         "final_performance": history[-1]["max_fitness"],
         "coverage": history[-1]["coverage"],
         "wall_seconds": time.perf_counter() - start,
+        # the first iteration compiles; the median of the rest is the steady rate
+        "seconds_per_iteration_median": float(sorted(seconds[1:] or seconds)[len(seconds[1:] or seconds) // 2]),
         "iterations": iterations,
         "env_steps": (iterations + 1) * steps_per_iteration,
         "max_fitness_curve": [h["max_fitness"] for h in history],
