@@ -174,7 +174,7 @@ def main() -> None:
     base = config("ch4_reproducibility", args.scale)
     key = jax.random.PRNGKey(PILOT_SEED)
     if args.levers:
-        name = "ant_omni_levers.json" if args.scale == "small" else f"ant_omni_levers_{args.scale}.json"
+        name = "ant_omni_levers" + ("" if args.scale == "small" else f"_{args.scale}") + ".json"
         return levers(base, args.scale, key, Path(__file__).parent / "results" / name)
     out = {
         "benchmark": "Chapter 4 small descriptor spaces: reach and cell counts",

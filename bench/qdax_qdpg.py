@@ -31,6 +31,7 @@ import functools
 import json
 import os
 import platform
+import statistics
 import time
 from pathlib import Path
 
@@ -220,7 +221,7 @@ def one_seed(seed: int, iterations: int) -> dict:
         "coverage": history[-1]["coverage"],
         "wall_seconds": time.perf_counter() - start,
         # the first iteration compiles; the median of the rest is the steady rate
-        "seconds_per_iteration_median": float(sorted(seconds[1:] or seconds)[len(seconds[1:] or seconds) // 2]),
+        "seconds_per_iteration_median": statistics.median(seconds[1:] or seconds),
         "iterations": iterations,
         "env_steps": (iterations + 1) * steps_per_iteration,
         "max_fitness_curve": [h["max_fitness"] for h in history],
