@@ -25,6 +25,10 @@ THE RULE (written before any run; the results file carries it):
   (iteration and parts, ``qdnb.core.health``), wall time.
 - A reading **exits** when at least 3 of its 4 seeds reach the exit zone; a
   diverged seed counts as not reaching it.
+- Added on 2026-12-06, after thesis-adam's four seeds (2 of 4 in the exit zone) and before
+  any further seed ran, to make "more if a verdict is one seed from changing" exact: a
+  reading with exactly 2 of 4 seeds in the zone gets seeds 4-5 before the next variant,
+  and is then read on its 6 seeds with the same share, three quarters (5 of 6).
 - Stop early: once a variant exits, the variants after it in the order are not run
   (``thesis-sgd`` always runs: it is the thesis's own reading and its divergence is
   diagnosed from it).  The thesis's reading stays QD-PG in the chapter whatever
@@ -60,6 +64,7 @@ from qdnb.chapters.ch3_qdpg import (
     build_algorithms,
     make_task_env,
     reading_exits,
+    reading_needs_more_seeds,
     run_method,
 )
 from qdnb.core import checkpoint, health
@@ -179,15 +184,17 @@ def main() -> None:
         what, make_cfg, fields = VARIANTS[variant]
         cfg = make_cfg(base)
         algo = dataclasses.replace(build_algorithms(cfg, "pointmaze", env)["QD-PG"], **fields)
-        for first in range(0, args.seeds, 2):
-            seeds = [first, first + 1]
+        first = 0
+        # the rule: a verdict one seed from changing after 4 seeds gets seeds 4-5
+        while first < args.seeds or (first == 4 and reading_needs_more_seeds(out, variant)):
+            seeds, first = [first, first + 1], first + 2
             if any(r["variant"] == variant and r["seed"] in seeds for r in out["rows"]):
                 continue
             what_runs = f"{variant} {config_hash(cfg)} {sorted(fields.items())}"
             digest = hashlib.sha256(what_runs.encode()).hexdigest()[:16]
             checkpoint.activate(
                 checkpoint.CheckpointPolicy(
-                    CHECKPOINTS, digest, first, code_version(), every_seconds=300
+                    CHECKPOINTS, digest, seeds[0], code_version(), every_seconds=300
                 )
             )
             keys = np.stack([jax.random.fold_in(jax.random.PRNGKey(0), s) for s in seeds])

@@ -853,6 +853,19 @@ def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
     assert sgd["final performance"] == "-120.0 (1 of 2 seeds diverged)"  # not averaged in
     assert sgd["diverged (iteration)"] == "250"
     assert chapter.reading_exits(ab, "sum") and not chapter.reading_exits(ab, "thesis-adam")
+    # fewer than 4 seeds call nothing; 2 of 4 is one seed from the verdict: two more seeds,
+    # then three quarters of 6 (5) must exit
+    two = [row("x", s, 1e5) for s in range(2)]
+    assert not chapter.reading_exits({"rows": two}, "x")
+    half = {"rows": two + [row("x", 2), row("x", 3)]}
+    assert chapter.reading_needs_more_seeds(half, "x") and not chapter.reading_exits(half, "x")
+    assert not chapter.reading_needs_more_seeds(ab, "sum")  # 3 of 4: decided
+    assert not chapter.reading_needs_more_seeds(ab, "thesis-adam")  # 0 of 4: decided
+    four = {"rows": half["rows"] + [row("x", 4, 1e5), row("x", 5, 1e5)]}
+    assert not chapter.reading_exits(four, "x")  # 4 of 6 is less than three quarters
+    five = {"rows": two + [row("x", 2, 1e5), row("x", 3), row("x", 4, 1e5), row("x", 5, 1e5)]}
+    assert chapter.reading_exits(five, "x")  # 5 of 6
+    assert not chapter.reading_needs_more_seeds(four, "x")  # 6 seeds: read as they are
     (d,) = chapter.divergence_rows(ab)
     assert d["NaN at iteration"] == 250 and d["parts"] == "q_critic, d_critic"
     assert d["quality critic loss"] == "1 → 2"  # the first and the last finite iteration
