@@ -140,13 +140,10 @@ def levers(base, scale: str, key, out_path: Path) -> None:
         entry = {}
         for method, rep in reps.items():
             filled = np.asarray(rep.filled)
-            d = np.asarray(rep.descriptors)
-            r = np.max(np.abs(d), axis=-1)[filled]
             entry[method] = {
                 "coverage": filled.mean(axis=-1).tolist(),
                 "mean": float(filled.mean()),
-                "reach_q50": float(np.quantile(r, 0.5)),
-                "reach_q95": float(np.quantile(r, 0.95)),
+                **reach(rep),
                 "seconds": seconds[method],
             }
         out["settings"][name] = {
@@ -157,6 +154,16 @@ def levers(base, scale: str, key, out_path: Path) -> None:
         print(name, {m: round(v["mean"], 3) for m, v in entry.items()}, flush=True)
         out_path.write_text(json.dumps(out, indent=1) + "\n")
     print("wrote", out_path)
+
+
+def reach(rep) -> dict[str, float]:
+    """Quantiles of max(|x|, |y|) over the filled cells' descriptors (all seeds pooled)."""
+    r = np.max(np.abs(np.asarray(rep.descriptors)), axis=-1)[np.asarray(rep.filled)]
+    return {
+        "reach_q50": float(np.quantile(r, 0.5)),
+        "reach_q95": float(np.quantile(r, REACH_QUANTILE)),
+        "reach_max": float(r.max()),
+    }
 
 
 def main() -> None:
@@ -200,14 +207,7 @@ def main() -> None:
     for name, rep in elites.items():
         d = np.asarray(rep.descriptors)[np.asarray(rep.filled)]
         pooled.append(d)
-        r = np.max(np.abs(d), axis=1)
-        per_method[name] = {
-            "elites": int(d.shape[0]),
-            "reach_q50": float(np.quantile(r, 0.5)),
-            "reach_q95": float(np.quantile(r, 0.95)),
-            "reach_max": float(r.max()),
-            "seconds": seconds[name],
-        }
+        per_method[name] = {"elites": int(d.shape[0]), **reach(rep), "seconds": seconds[name]}
     bound = reach_bound(np.concatenate(pooled))
     out["reach"] = {
         "cells": wide.num_cells,

@@ -60,6 +60,7 @@ from qdnb.book.provenance import code_version, device, git_sha
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import (
     POINTMAZE_PAPER,
+    READING_MIN_SEEDS,
     QDPGConfig,
     build_algorithms,
     make_task_env,
@@ -186,7 +187,9 @@ def main() -> None:
         algo = dataclasses.replace(build_algorithms(cfg, "pointmaze", env)["QD-PG"], **fields)
         first = 0
         # the rule: a verdict one seed from changing after 4 seeds gets seeds 4-5
-        while first < args.seeds or (first == 4 and reading_needs_more_seeds(out, variant)):
+        while first < args.seeds or (
+            first == READING_MIN_SEEDS and reading_needs_more_seeds(out, variant)
+        ):
             seeds, first = [first, first + 1], first + 2
             if any(r["variant"] == variant and r["seed"] in seeds for r in out["rows"]):
                 continue

@@ -1168,21 +1168,25 @@ def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
     return rows
 
 
+def _seeds_and_exits(ab: dict, variant: str) -> tuple[int, int]:
+    """How many seeds of ``variant`` the A/B has run, and how many reached the exit zone."""
+    mine = [r for r in ab.get("rows", []) if r["variant"] == variant]
+    return len(mine), sum(r["reached_exit"] for r in mine)
+
+
 def reading_exits(ab: dict, variant: str) -> bool:
     """Whether ``variant`` exits by the A/B's rule: at least ``READING_MIN_SEEDS`` seeds
     run, and three quarters of them in the exit zone."""
-    mine = [r for r in ab.get("rows", []) if r["variant"] == variant]
-    reached = sum(r["reached_exit"] for r in mine)
-    return len(mine) >= READING_MIN_SEEDS and reached >= exits_needed(len(mine))
+    seeds, reached = _seeds_and_exits(ab, variant)
+    return seeds >= READING_MIN_SEEDS and reached >= exits_needed(seeds)
 
 
 def reading_needs_more_seeds(ab: dict, variant: str) -> bool:
     """The rule's "more seeds if a verdict is one seed from changing": a reading run on
     exactly ``READING_MIN_SEEDS`` seeds whose count of exits is one short of the verdict
     (2 of 4) gets two more, and is then read on 6 (5 of 6 exit)."""
-    mine = [r for r in ab.get("rows", []) if r["variant"] == variant]
-    reached = sum(r["reached_exit"] for r in mine)
-    return len(mine) == READING_MIN_SEEDS and reached == exits_needed(len(mine)) - 1
+    seeds, reached = _seeds_and_exits(ab, variant)
+    return seeds == READING_MIN_SEEDS and reached == exits_needed(seeds) - 1
 
 
 def divergence_rows(ab: dict) -> list[dict[str, Any]]:

@@ -28,7 +28,8 @@ def record(claim_id: str, claim: str, status: str | bool, numbers: str) -> dict[
 def finite_mean(values) -> float:
     """The mean over the seeds whose value is finite (a diverged seed, or one that could
     not measure it, is NaN); NaN, without a warning, if none is."""
-    finite = np.asarray(values, float)[np.isfinite(np.asarray(values, float))]
+    values = np.asarray(values, float)
+    finite = values[np.isfinite(values)]
     return float(finite.mean()) if finite.size else float("nan")
 
 
