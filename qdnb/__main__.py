@@ -81,6 +81,12 @@ def main(argv: list[str] | None = None) -> int:
     pub.add_argument("scale")
     pub.add_argument("notebook")
     pub.add_argument("--out", default=None, help="the archive's path (default: data/published/...)")
+    pub.add_argument(
+        "--verdicts",
+        action="store_true",
+        help="publish only the run's claims and provenance (data/published/<scale>/<notebook>/"
+        "verdicts.json, kilobytes, kept in the repository and shown by every build)",
+    )
     imp = sub.add_parser("import", help="check a published run's archive and unpack it")
     imp.add_argument("archive")
     imp.add_argument("--replace", action="store_true", help="replace a run already here")
@@ -139,6 +145,10 @@ def main(argv: list[str] | None = None) -> int:
                 deterministic=args.deterministic,
             )
             print(f"book: {index}")
+        elif args.command == "publish" and args.verdicts:
+            from qdnb.book import verdicts
+
+            print(f"published: {verdicts.publish_verdicts(args.scale, args.notebook)}")
         elif args.command == "publish":
             print(f"published: {publish.publish(args.scale, args.notebook, args.out)}")
         elif args.command == "import":

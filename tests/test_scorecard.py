@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from qdnb.book import runner, scorecard
+from qdnb.book import publish, runner, scorecard, verdicts
 from qdnb.core import claims, paths
 
 HOLDS, FAILS, CANNOT = (scorecard.SYMBOL[k] for k in ("holds", "fails", "cannot show"))
@@ -13,6 +13,8 @@ HOLDS, FAILS, CANNOT = (scorecard.SYMBOL[k] for k in ("holds", "fails", "cannot 
 @pytest.fixture
 def runs(tmp_path, monkeypatch):
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(verdicts, "PUBLISHED", tmp_path / "published")
+    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
     return tmp_path / "runs"
 
 
@@ -41,14 +43,17 @@ def test_the_scorecard_lists_each_claim_by_scale_with_its_numbers(runs):
     table = scorecard.scorecard(scorecard.summaries())
     (row,) = [line for line in table.splitlines() if "The FLT beats" in line]
     cells = [c.strip() for c in row.split(" | ")]
-    assert cells[2].startswith(FAILS) and "0.38 vs 0.0035" in cells[2]
+    # at tiny a check ran, no verdict is printed; at small it is the verdict
+    assert cells[2].startswith(scorecard.RAN) and "0.38 vs 0.0035" in cells[2]
+    assert FAILS not in table.split("The FLT beats")[1].split("\n")[0]
     assert cells[3].startswith(HOLDS) and "0.01 vs 0.02" in cells[3]
     assert cells[4].rstrip(" |") == scorecard.NOT_RUN  # no paper run
-    assert any("QD-PG is faster" in r and CANNOT in r for r in table.splitlines())
+    assert any("QD-PG is faster" in r and scorecard.RAN in r for r in table.splitlines())
     # a page with no run at any scale still has its row
     assert "*no claim recorded yet*" in table and "[Ch. 4: the QDT](chapters/ch4_qdt)" in table
     tally = scorecard.tally(scorecard.summaries())
-    assert "**`tiny`**" in tally and "0 of 2 claims hold, 1 fail, 1 cannot show" in tally
+    assert "**`tiny`**" in tally and "2 claim checks ran" in tally and "no verdict" in tally
+    assert "1 of 1 claims hold, 0 fail, 0 cannot show" in tally  # small
     assert "**`paper`**: not run" in tally
 
 
@@ -61,8 +66,12 @@ def test_a_page_opens_with_its_claims_and_at_tiny_a_warning(runs):
     )
     assert box.startswith("````{admonition} At a glance") and ":class: warning" in box
     assert "code-path check only" in box and "not evidence" in box
-    assert f"| NS reaches | {FAILS} | 0/2 |" in box and "12 s" in box and "2 CPU" in box
+    assert f"| NS reaches | {scorecard.RAN} | 0/2 |" in box and "12 s" in box and "2 CPU" in box
+    assert FAILS not in box  # no verdict at tiny
+    write_summary("small", "ch2_primer", [claims.record("ch2/goal", "NS reaches", False, "0/2")])
+    ran = json.loads((paths.run_dir("small", "ch2_primer") / "summary.json").read_text())
+    assert f"| NS reaches | {FAILS} | 0/2 |" in scorecard.chapter_box("ch2_primer", "small", ran)
     small = scorecard.chapter_box("ch2_primer", "small", None)
     assert ":class: note" in small and "not evidence" not in small and "no run record" in small
     status = runner.status_table("tiny")
-    assert "ran at scale tiny" in status and f"| NS reaches | {FAILS}<br>" in status
+    assert "ran at scale tiny" in status and f"| NS reaches | {scorecard.RAN}<br>" in status

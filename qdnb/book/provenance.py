@@ -15,6 +15,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from qdnb.book import registry, verdicts
 from qdnb.core import checkpoint, paths, sharding
 from qdnb.core.config import check_scale, config_dict, config_hash
 from qdnb.core.io import atomic_write_json
@@ -170,6 +171,8 @@ class Run:
         self.config = cfg
         self.dir = paths.run_dir(scale, notebook)
         self.started = time.time()
+        # what computed the results, as published verdicts are checked against it
+        self.code_digest = verdicts.code_digest(notebook) if notebook in registry.names() else None
         self.checkpoints = mode = checkpoint_mode()
         checkpoint.activate(
             None
@@ -202,6 +205,7 @@ class Run:
             "seed": self.seed,
             "config": config_dict(self.config),
             "config_hash": self.config_hash,
+            "code_digest": self.code_digest,
             "versions": versions(),
             "device": device(),
             "xla_flags": os.environ.get("XLA_FLAGS", ""),

@@ -2,7 +2,10 @@
 
 Both are read from the runs' ``summary.json`` (``results["claims"]``, see
 ``qdnb.core.claims``): every scale this machine holds a run of, computed here or
-imported from a published archive.  Nothing here computes a result.
+imported from a published archive, and for a scale whose page did not run here, the
+verdicts published in the repository (``qdnb.book.verdicts``), with where, when and
+from which commit, marked stale when the chapter's code or config has changed since.
+Nothing here computes a result.
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ from __future__ import annotations
 import html
 from typing import Any
 
-from qdnb.book import publish, registry
+from qdnb.book import publish, registry, verdicts
 from qdnb.core.claims import CANNOT_SHOW, FAILS, HOLDS
 from qdnb.core.config import SCALES
 from qdnb.core.io import load_summary
@@ -26,11 +29,43 @@ SCALE_MEANING = {
 # (no-break spaces: a status never wraps in a narrow column)
 SYMBOL = {HOLDS: "✓\u00a0holds", FAILS: "✗\u00a0fails", CANNOT_SHOW: "—\u00a0cannot\u00a0show"}
 NOT_RUN = "not run"
+# at tiny a check ran its code path; its numbers are no verdict, so none is printed
+RAN = "ran (no verdict at\u00a0`tiny`)"
+NO_VERDICT = ("tiny",)
+
+
+def status_text(claim: dict[str, str], scale: str) -> str:
+    """A claim's status as a reader sees it: ✓ / ✗ / — at a scale that is evidence,
+    "ran" at ``tiny``."""
+    return RAN if scale in NO_VERDICT else SYMBOL[claim["status"]]
 
 
 def summaries(scales: tuple[str, ...] = SCALES) -> dict[str, dict[str, dict | None]]:
-    """``{scale: {notebook: summary or None}}`` for every registered chapter."""
-    return {s: {c.name: load_summary(s, c.name) for c in registry.CHAPTERS} for s in scales}
+    """``{scale: {notebook: summary or None}}`` for every registered chapter: the run on
+    this machine, else the published verdicts (``verdicts.as_summary``), else ``None``."""
+    out: dict[str, dict[str, dict | None]] = {}
+    for s in scales:
+        out[s] = {}
+        for c in registry.CHAPTERS:
+            summary = load_summary(s, c.name)
+            if summary is None:
+                record = verdicts.published(s, c.name)
+                summary = verdicts.as_summary(record) if record else None
+            out[s][c.name] = summary
+    return out
+
+
+def provenance_note(summary: dict) -> str:
+    """For published verdicts: where, when, from which commit, and whether stale."""
+    pub = summary.get("published")
+    if not pub:
+        return ""
+    note = (
+        f"published run ({pub.get('host')}, {str(pub.get('published_at'))[:10]}, "
+        f"`{str(summary.get('git_sha'))[:8]}`)"
+    )
+    stale = summary.get("stale") or []
+    return note + (f"; **stale**: {'; '.join(stale)}" if stale else "")
 
 
 def claims_of(summary: dict | None) -> list[dict[str, str]] | None:
@@ -45,13 +80,15 @@ def _table_text(text: str) -> str:
     return html.escape(text, quote=False).replace("|", "&#124;")
 
 
-def _cell(claim: dict[str, str] | None, summary: dict | None) -> str:
+def _cell(claim: dict[str, str] | None, summary: dict | None, scale: str) -> str:
     if summary is None:
         return NOT_RUN
     if claim is None:
         return "ran before claims were itemised"
     numbers = _table_text(claim["numbers"])
-    return f'{SYMBOL[claim["status"]]}<br><span class="qdnb-numbers">{numbers}</span>'
+    note = provenance_note(summary)
+    note = f"<br>{note}" if note else ""
+    return f'{status_text(claim, scale)}<br><span class="qdnb-numbers">{numbers}{note}</span>'
 
 
 def where(scale: str, name: str) -> str:
@@ -84,7 +121,7 @@ def scorecard(by_scale: dict[str, dict[str, dict | None]]) -> str:
                 + " |"
             )
         for i, (claim_id, text) in enumerate(rows.items()):
-            cells = [_cell(found[s].get(claim_id), runs[s]) for s in scales]
+            cells = [_cell(found[s].get(claim_id), runs[s], s) for s in scales]
             page = link if i == 0 else ""  # the page once, atop its claims
             lines.append(f"| {page} | {_table_text(text)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -99,13 +136,25 @@ def tally(by_scale: dict[str, dict[str, dict | None]]) -> str:
         if not ran:
             out.append(f"- **`{s}`**: not run on this build's machine, none published.")
             continue
+        if s in NO_VERDICT:
+            out.append(
+                f"- **`{s}`** ({SCALE_MEANING[s]}): {len(records)} claim checks ran on "
+                f"{len(ran)} of {len(runs)} pages; no verdict is drawn at this scale."
+            )
+            continue
         counts = {k: sum(c["status"] == k for c in records) for k in (HOLDS, FAILS, CANNOT_SHOW)}
         imported = [n for n in ran if publish.imported(s, n)]
-        origin = (
-            f"; {len(imported)} of them published runs imported from elsewhere"
-            if imported
-            else ", all computed by this build"
-        )
+        listed = [n for n in ran if runs[n].get("published")]
+        stale = [n for n in listed if runs[n].get("stale")]
+        sources = []
+        if imported:
+            sources.append(f"{len(imported)} of them published runs imported from elsewhere")
+        if listed:
+            sources.append(
+                f"{len(listed)} of them verdicts published in the repository"
+                + (f", {len(stale)} stale (their code or config changed since)" if stale else "")
+            )
+        origin = "; " + "; ".join(sources) if sources else ", all computed by this build"
         out.append(
             f"- **`{s}`** ({SCALE_MEANING[s]}): {counts[HOLDS]} of {len(records)} claims hold, "
             f"{counts[FAILS]} fail, {counts[CANNOT_SHOW]} cannot show; {len(ran)} of "
@@ -156,7 +205,7 @@ def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
     else:
         lines += ["| claim | status | numbers |", "|---|---|---|"]
         lines += [
-            f"| {_table_text(c['claim'])} | {SYMBOL[c['status']]} | {_table_text(c['numbers'])} |"
+            f"| {_table_text(c['claim'])} | {status_text(c, scale)} | {_table_text(c['numbers'])} |"
             for c in records
         ]
     lines.append("````")

@@ -1,0 +1,185 @@
+"""Published verdicts: a page's claims at a scale, kept in the repository so that every
+build shows them, with where, when and from which code they were computed.
+
+A run's ``summary.json`` is kilobytes; ``publish_verdicts(scale, notebook)`` copies its
+claims and provenance into ``data/published/<scale>/<notebook>/verdicts.json`` (no
+executed notebook, no artifact).  The book reads them for a scale whose page did not
+run on this machine (a page's own run always takes precedence), and marks them
+**stale** when what computed them has changed since: the chapter's config at that scale
+(its hash), or its computation's code (``code_digest``: the notebook's code cells and
+every ``qdnb`` module they and the chapter's module import, but the book's and the
+figures' modules, which only present results; the notebook's prose changes nothing).
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import nbformat
+
+from qdnb.book import publish, registry
+from qdnb.core import paths
+from qdnb.core.config import check_scale, config_hash
+from qdnb.core.io import atomic_write_json, load_summary
+
+PUBLISHED = paths.DATA / "published"
+FILE = "verdicts.json"
+# modules that present results and compute none: a change there leaves a verdict fresh
+PRESENTATION = ("qdnb.book", "qdnb.plotting")
+# what a verdict keeps of its run's summary.json
+KEPT = ("seed", "config_hash", "code_digest", "git_sha", "device", "devices", "wall_time_s")
+
+
+def _module_file(module: str) -> Path | None:
+    base = paths.ROOT.joinpath(*module.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.exists():
+            return candidate
+    return None
+
+
+def _imported(source: str) -> set[str]:
+    """The ``qdnb`` modules a source imports (``from qdnb.a import b`` names ``qdnb.a``
+    and, if it is a module, ``qdnb.a.b``)."""
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module)
+            found |= {f"{node.module}.{a.name}" for a in node.names}
+    return {m for m in found if m.split(".")[0] == "qdnb"}
+
+
+def _notebook_source(notebook: Path) -> str:
+    cells = nbformat.read(notebook, as_version=4).cells
+    lines = [
+        line
+        for c in cells
+        if c.cell_type == "code"
+        for line in c.source.splitlines()
+        if not line.lstrip().startswith(("%", "!"))
+    ]
+    return "\n".join(lines)
+
+
+def computation_files(name: str) -> list[Path]:
+    """The files a chapter's results depend on: its notebook, its module and every
+    ``qdnb`` module they import, transitively (packages' ``__init__`` included), but
+    ``PRESENTATION``'s (of the notebook, ``code_digest`` reads the code cells)."""
+    chapter = registry.chapter(name)
+    todo = _imported(_notebook_source(chapter.notebook)) | {f"qdnb.chapters.{name}"}
+    seen: dict[str, Path] = {}
+    while todo:
+        module = todo.pop()
+        if module in seen or module.startswith(PRESENTATION):
+            continue
+        parts = module.split(".")
+        todo |= {".".join(parts[:i]) for i in range(1, len(parts))}  # its packages
+        path = _module_file(module)
+        if path is None:  # a name imported from a module, not a module
+            continue
+        seen[module] = path
+        todo |= _imported(path.read_text())
+    return [chapter.notebook] + sorted(set(seen.values()))
+
+
+def code_digest(name: str) -> str:
+    """A digest of ``computation_files(name)``: their paths and contents (the
+    notebook's code cells only)."""
+    notebook, *modules = computation_files(name)
+    h = hashlib.sha256(_notebook_source(notebook).encode())
+    for f in modules:
+        h.update(str(f.relative_to(paths.ROOT)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def path(scale: str, notebook: str, where: Path | None = None) -> Path:
+    return (where or PUBLISHED) / scale / notebook / FILE
+
+
+def publish_verdicts(scale: str, notebook: str) -> Path:
+    """Copy the claims and provenance of the finished run of ``notebook`` at ``scale``
+    into the repository (``path``); a clear error when there is no such run."""
+    check_scale(scale)
+    registry.chapter(notebook)
+    summary = load_summary(scale, notebook)
+    execution = paths.run_dir(scale, notebook, create=False) / "execution.json"
+    finished = execution.exists() and json.loads(execution.read_text()).get("status") == "ok"
+    if summary is None or not finished:
+        raise ValueError(
+            f"no finished run of {notebook!r} at scale {scale!r} to publish the verdicts of; "
+            f"run `python -m qdnb run {notebook} --scale {scale}` first"
+        )
+    claims = summary.get("results", {}).get("claims")
+    if claims is None:
+        raise ValueError(f"the run of {notebook!r} at scale {scale!r} itemised no claims")
+    record = {
+        "format": 1,
+        "notebook": notebook,
+        "scale": scale,
+        "published_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "host": platform.node(),
+        "run": {k: summary.get(k) for k in KEPT},
+        "headline": summary.get("results", {}).get("headline", ""),
+        "claims": claims,
+    }
+    return atomic_write_json(path(scale, notebook), record)
+
+
+def published(scale: str, notebook: str, where: Path | None = None) -> dict[str, Any] | None:
+    """The verdicts published for ``notebook`` at ``scale``: its ``verdicts.json``, else
+    the summary inside a whole run's published archive (``qdnb.book.publish``), else
+    ``None``."""
+    p = path(scale, notebook, where)
+    if p.exists():
+        return json.loads(p.read_text())
+    archive = publish.archive_path(scale, notebook)
+    if where is None and archive.exists():
+        manifest, contents = publish.read_archive(archive)
+        summary = json.loads(contents["summary.json"])
+        claims = summary.get("results", {}).get("claims")
+        if claims is not None:
+            return {
+                "notebook": notebook,
+                "scale": scale,
+                "published_at": manifest["published_at"],
+                "host": manifest.get("host"),
+                "run": {k: summary.get(k) for k in KEPT},
+                "headline": summary["results"].get("headline", ""),
+                "claims": claims,
+            }
+    return None
+
+
+def stale_reasons(record: dict[str, Any]) -> list[str]:
+    """Why published verdicts no longer describe this code (empty: they do)."""
+    run, name, scale = record["run"], record["notebook"], record["scale"]
+    reasons = []
+    if run.get("config_hash") != config_hash(registry.config(name, scale)):
+        reasons.append("the chapter's config at this scale changed")
+    if run.get("code_digest") is None:
+        reasons.append("its code was not recorded")
+    elif run["code_digest"] != code_digest(name):
+        reasons.append("the chapter's code changed")
+    return reasons
+
+
+def as_summary(record: dict[str, Any]) -> dict[str, Any]:
+    """Published verdicts in the shape of a run's ``summary.json`` (what the scorecard
+    reads), with ``published`` (where and when) and ``stale`` (``stale_reasons``)."""
+    return {
+        "notebook": record["notebook"],
+        "scale": record["scale"],
+        **record["run"],
+        "results": {"headline": record.get("headline", ""), "claims": record["claims"]},
+        "published": {k: record.get(k) for k in ("published_at", "host")},
+        "stale": stale_reasons(record),
+    }
