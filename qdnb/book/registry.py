@@ -27,6 +27,7 @@ class Chapter:
     name: str  # the notebook's stem and the chapter module's name
     title: str
     short: str  # the page in a few words (the scorecard's first column)
+    part: str  # the thesis's chapter the page belongs to (the sidebar's group)
 
     @property
     def notebook(self) -> Path:
@@ -47,30 +48,42 @@ class Chapter:
         return self.module.SCALES[scale]
 
 
+# the thesis's chapters, as its table of contents names them
+BACKGROUND = "Chapters 1–2 · Introduction and background"
+QDPG = "Chapter 3 · Diversity Policy Gradient for Sample Efficient QD Optimization"
+QDT = "Chapter 4 · Generating Behavior-Conditioned Trajectories with Decision Transformers"
+FLT = "Chapter 5 · Deep Learning for Diversity Search in Continuous Cellular Automata"
+
 CHAPTERS: tuple[Chapter, ...] = (
     Chapter(
         "ch2_primer",
         "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
         "Ch. 1–2: the deceptive maze",
+        BACKGROUND,
     ),
-    Chapter("ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap", "Ch. 3: QD-PG"),
+    Chapter(
+        "ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap", "Ch. 3: QD-PG", QDPG
+    ),
     Chapter(
         "ch3_baselines",
         "Chapter 3: the policy-gradient baselines (Table 3.4)",
         "Ch. 3: policy-gradient baselines",
+        QDPG,
     ),
     Chapter(
         "ch3_evolution",
         "Chapter 3: the evolutionary competitors (Table 3.3)",
         "Ch. 3: evolution strategies",
+        QDPG,
     ),
     Chapter(
         "ch4_reproducibility",
         "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni",
         "Ch. 4: MAP-Elites Low-Spread",
+        QDT,
     ),
-    Chapter("ch4_qdt", "Chapter 4: the Quality-Diversity Transformer", "Ch. 4: the QDT"),
-    Chapter("ch5_flow_lenia", "Chapter 5: the Flow Lenia Transformer", "Ch. 5: the FLT"),
+    Chapter("ch4_qdt", "Chapter 4: the Quality-Diversity Transformer", "Ch. 4: the QDT", QDT),
+    Chapter("ch5_flow_lenia", "Chapter 5: the Flow Lenia Transformer", "Ch. 5: the FLT", FLT),
 )
 
 
@@ -92,14 +105,20 @@ def config(name: str, scale: str):
 
 
 def toc() -> str:
-    """The book's ``_toc.yml``: the intro, one page per chapter, what the ``paper``
-    scale needs, how to reproduce the book, the references."""
+    """The book's ``_toc.yml``: the intro, the pages grouped by the thesis's chapter
+    (``Chapter.part``), then what the ``paper`` scale needs, how to reproduce the book
+    and the references."""
     lines = [
         "# Written by `python -m qdnb book` from qdnb.book.registry.CHAPTERS.",
         "format: jb-book",
         "root: intro",
-        "chapters:",
+        "parts:",
     ]
-    lines += [f"  - file: chapters/{c.name}" for c in CHAPTERS]
-    lines += ["  - file: paper_scale", "  - file: reproducing", "  - file: references"]
+    parts: dict[str, list[str]] = {}
+    for c in CHAPTERS:
+        parts.setdefault(c.part, []).append(f"chapters/{c.name}")
+    parts["About this book"] = ["reproducing", "paper_scale", "references"]
+    for caption, files in parts.items():
+        lines += [f'  - caption: "{caption}"', "    chapters:"]
+        lines += [f"      - file: {f}" for f in files]
     return "\n".join(lines) + "\n"
