@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 
 from qdnb.book import runner  # noqa: E402
 from qdnb.plotting import COLUMN_INCHES, FIGURE_KEY, show  # noqa: E402
-from qdnb.plotting.tables import cell_text, styled  # noqa: E402
+from qdnb.plotting.tables import cell_html, cell_text, mean_sd, styled  # noqa: E402
 
 
 def test_a_table_has_no_default_index_rounds_and_writes_everything_out():
@@ -38,6 +38,98 @@ def test_a_table_has_no_default_index_rounds_and_writes_everything_out():
     # a meaningful index stays, as row labels
     named = styled(pd.DataFrame({"a": [1.0]}, index=pd.Index(["ME"], name="method")))
     assert "<th>method</th>" in named and "<th>ME</th>" in named
+
+
+def test_identifiers_are_code_long_labels_wrap_and_only_a_dump_may_scroll():
+    df = pd.DataFrame(
+        {"num_seeds": [2], "source": ["config (agac_torch/configs/point_maze.yaml)"]},
+        index=pd.Index(["QD-PG, Adam (the A/B's base reading)"], name="reading"),
+    )
+    html = styled(df)
+    assert "<th><code>num_seeds</code></th>" in html
+    assert "config (<code>agac_torch/configs/point_maze.yaml</code>)" in html
+    assert '<th class="long">' in html and 'class="qdnb-table"' in html
+    assert "<th>ME</th>" in styled(pd.DataFrame({"a": [1]}, index=pd.Index(["ME"], name="m")))
+    assert cell_html({"lr_actor": 3e-4, "steps": 10}) == "<code>lr_actor</code>: 0.0003, steps: 10"
+    assert 'class="qdnb-table qdnb-dump"' in styled(df, dump=True)
+
+
+def test_a_mean_over_one_seed_has_no_spread_and_diverged_seeds_are_counted():
+    assert mean_sd([-126.04]) == "-126.0 (1 seed)"
+    assert mean_sd([1.0, 3.0], digits=2) == "2.00 ± 1.00 (2 seeds)"
+    assert mean_sd([1.0, 3.0, np.nan]) == "2.0 ± 1.0 (2 seeds), 1 diverged"
+    assert mean_sd([np.nan]) == "diverged" and mean_sd([]) == "—"
+
+
+def test_machine_written_words_become_a_readers():
+    from qdnb.core.names import markdown_words
+
+    assert markdown_words("ant_omni ME: start") == "Ant-Omni ME: start"
+    assert markdown_words("rate from qdt_h100_paper on x86_64") == (
+        "rate from `qdt_h100_paper` on `x86_64`"
+    )
+    assert markdown_words("already `ch3_qdpg`, halfcheetah_uni") == (
+        "already `ch3_qdpg`, Halfcheetah-Uni"
+    )
+
+
+def test_the_sidebar_groups_the_pages_by_the_thesiss_chapters():
+    import yaml
+
+    from qdnb.book import registry
+
+    toc = yaml.safe_load(registry.toc())
+    captions = [p["caption"] for p in toc["parts"]]
+    assert [c.split(" ·")[0] for c in captions] == [
+        "Chapters 1–2",
+        "Chapter 3",
+        "Chapter 4",
+        "Chapter 5",
+        "About this book",
+    ]
+    ch3 = [c["file"] for c in toc["parts"][1]["chapters"]]
+    assert ch3 == ["chapters/ch3_qdpg", "chapters/ch3_baselines", "chapters/ch3_evolution"]
+    files = [c["file"] for p in toc["parts"] for c in p["chapters"]]
+    assert files[-3:] == ["reproducing", "paper_scale", "references"]
+    assert len(files) == len(registry.CHAPTERS) + 3
+
+
+def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from qdnb import plotting
+
+    fig, axs = plt.subplots(1, 4, figsize=(6, 2))
+    fig.colorbar(axs[0].imshow(np.full((4, 4), 0.3)), ax=axs[0])
+    axs[1].plot([np.nan, np.nan])
+    axs[1].set_title("loss")
+    axs[2].plot([0], [2.0])  # a curve of one point: one evaluation
+    axs[3].imshow(np.random.default_rng(0).random((3, 3)))  # a real image, and lines of
+    axs[3].plot([0, 1], [0, 1])  # two points, a marker and a reference line are fine
+    axs[3].plot([0.5], [0.5], "o")
+    axs[3].axhline(0.2)
+    assert plotting.degeneracies(fig) == [
+        "panel 1 is a uniform image (0.3)",
+        "panel 2 (loss) has no finite value to draw",
+        "panel 3 draws each curve as a single point",
+        "a colour bar spans a single value (0.3)",
+    ]
+    shown = []
+    monkeypatch.setattr("IPython.display.display", lambda obj, **kw: shown.append(kw))
+    show(fig, "Losses.", "Four panels.")
+    caption = shown[-1]["metadata"][FIGURE_KEY]["caption"]
+    assert caption.startswith("Losses. **Degenerate at this scale:** panel 1 is a uniform")
+    assert caption.endswith("(no reason given)")
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.imshow(np.zeros((2, 2)))
+    show(fig, "A frame.", "A frame.", note="At tiny the FLT predicts the mean frame.")
+    assert shown[-1]["metadata"][FIGURE_KEY]["caption"].endswith(
+        "uniform image (0). At tiny the FLT predicts the mean frame."
+    )
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.plot([0, 1, 2], [3, 1, 2])
+    show(fig, "A curve.", "A curve.")
+    assert shown[-1]["metadata"][FIGURE_KEY]["caption"] == "A curve."
 
 
 def test_numbers_print_to_four_significant_digits():

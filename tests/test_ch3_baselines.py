@@ -120,14 +120,14 @@ def test_the_rest_of_table_3_4_is_read_from_the_qdpg_pages_run_of_this_seed_and_
     cfg = config("ch3_baselines", "tiny")
     assert ch3_baselines.qdpg_page_methods(cfg, "tiny", 0) == (
         None,
-        "no ch3_qdpg run at this scale",
+        "no run of the QD-PG page at this scale",
     )
     entry = {"ran": True, "final_performance": -129.0, "env_steps": 8000.0}
     results = {e: {"QD-PG": entry, "TD3": entry, "PGA-ME": {"ran": False}} for e in ENVIRONMENTS}
     summary = {"seed": 0, "config_hash": config_hash(cfg.tasks), "results": results}
     (paths.run_dir("tiny", "ch3_qdpg") / "summary.json").write_text(json.dumps(summary))
     others, where = ch3_baselines.qdpg_page_methods(cfg, "tiny", 0)
-    assert others == {e: {"TD3": entry} for e in ENVIRONMENTS} and "summary.json" in where
+    assert others == {e: {"TD3": entry} for e in ENVIRONMENTS} and "QD-PG page's run" in where
     assert ch3_baselines.qdpg_page_methods(cfg, "tiny", 1)[0] is None  # another seed
     other_cfg = dataclasses.replace(cfg, tasks=config("ch3_qdpg", "small"))
     assert ch3_baselines.qdpg_page_methods(other_cfg, "tiny", 0)[0] is None  # another config

@@ -410,7 +410,7 @@ def test_a_dry_run_stopped_from_outside_is_reported_cut_off_with_its_loops(tmp_p
     assert list(got["notebooks"]) == ["ch5_flow_lenia"]  # the primer left no records
     nb = got["notebooks"]["ch5_flow_lenia"]
     assert nb["status"] == "cut off" and nb["totals"]["cpu_hours"] == pytest.approx(1.0)
-    assert report.chapter_rows(got)[0]["dry run"] == "CUT OFF"
+    assert report.chapter_rows(got)[0]["dry run"] == "CUT OFF, 1 loop"
     with pytest.raises(ValueError, match="not paper"):
         report.resummarise("paper", out, work=tmp_path)
 

@@ -26,13 +26,24 @@ body {{ margin: 0; }} article.bd-article {{ width: 700px; }}
 CLEAN = (
     '<div class="qdnb-table"><table><thead><tr><th>method</th><th>value</th></tr></thead>'
     '<tbody><tr><th>ME</th><td class="num">1.5</td></tr></tbody></table></div>'
-    "<p>budget: 10<sup>6</sup> steps, a price of $5</p>"
+    '<div class="qdnb-table qdnb-dump"><table><tr>'
+    + "<td>coverage</td>"
+    * 40
+    + "</tr></table></div>"
+    "<p>budget: 10<sup>6</sup> steps, a price of $5, <code>num_seeds</code> = 2, "
+    'Ant-Omni, 0.3 ± 0.01, −24 ± 0 (thesis), <span class="math">\\(x_0\\)</span></p>'
 )
 FAULTS = {
     "js_error": ("<script>const a = 1; const a = 2;</script>", CLEAN, "a JavaScript error"),
     "broken_image": ("", CLEAN + '<img src="missing.png" alt="x">', "a broken image"),
     "wide_figure": ("", '<img style="width:900px" src="ok.png" alt="x">', "wider than the column"),
     "raw_math": ("", "<p>the thesis used $10^6$ steps</p>", "unrendered math"),
+    # a table scrolling inside its box is a table wider than the column; a data dump may
+    "wide_table": (
+        "",
+        '<div class="qdnb-table"><table><tr>' + "<td>coverage</td>" * 40 + "</tr></table></div>",
+        "a table wider than the column",
+    ),
     "progress_bar": (
         "",
         "<pre>QDT(ME): 100%|██████████| 2/2 [00:08&lt;00:00,  4.46s/it]</pre>",
@@ -65,7 +76,21 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
             "the goal with 10x fewer...</td></tr></tbody></table>",
         )
     )
+    (html / "words.html").write_text(
+        PAGE.format(
+            head="",
+            output="<p>set num_seeds to 4 (ant_omni): 1.2 ± 0.0</p><figcaption>Loss. "
+            "<strong>Degenerate at this scale:</strong> panel 1 is a constant image (0). "
+            "(no reason given)</figcaption>",
+        )
+    )
     problems = pagecheck.static_problems(html)
+    assert any(
+        "words.html: an identifier in the text" in p and "'num_seeds'" in p for p in problems
+    )
+    assert any("words.html: an identifier in the text" in p and "'ant_omni'" in p for p in problems)
+    assert any("words.html: a zero spread" in p and "1.2 ± 0.0" in p for p in problems)
+    assert any("words.html: a degenerate figure without a note" in p for p in problems)
     assert any("raw_math.html: raw LaTeX" in p and "$10^6$" in p for p in problems)
     assert any("progress_bar.html: a progress bar" in p for p in problems)
     assert any("pandas.html: a pandas table shows its 0, 1, 2" in p for p in problems)

@@ -169,7 +169,7 @@ def test_the_paper_page_lists_published_runs_with_where_and_when(runs):
     fake_run()
     archive = publish.publish("tiny", "ch2_primer")
     (row,) = paper_page.published_rows("tiny")
-    assert row["notebook"] == "ch2_primer" and row["wall time"].endswith(" s")
+    assert row["notebook"] == "`ch2_primer`" and row["wall time"].endswith(" s")
     assert row["when"].endswith("UTC") and archive.name in row["archive"]
     archive.write_bytes(archive.read_bytes()[:100])  # a broken archive is named, not hidden
     (row,) = paper_page.published_rows("tiny")

@@ -217,10 +217,10 @@ def test_seed_scores_and_claim_checks_on_a_hand_made_result():
     np.testing.assert_allclose(s["coverage_kept"], [1.0, 0.5])
     checks = {c["claim"]: c for c in claim_checks({"toy": res})}
     # distance: 1.5 vs 2.0 on the mean, but 1 seed of 2 only: does not hold
-    assert not checks["ME-LS avg_distance < ME"]["holds"]
-    assert checks["ME-LS avg_distance < ME"]["seeds where it holds"] == "1/2"
+    assert not checks["ME-LS average distance < ME"]["holds"]
+    assert checks["ME-LS average distance < ME"]["seeds where it holds"] == "1/2"
     assert checks["ME-LS keeps more coverage than ME on reassessment"]["holds"]  # 0.75 vs 0.375
-    assert checks["PGA-ME-LS avg_spread < PGA-ME"]["holds"]
+    assert checks["PGA-ME-LS average spread < PGA-ME"]["holds"]
     assert len(checks) == 6
 
 
@@ -230,3 +230,13 @@ def test_results_are_frozen():
     res = EnvironmentResult("ant_omni", None, np.zeros((2, 2)), np.zeros((3, 2)), 0.0, {})
     with pytest.raises(dataclasses.FrozenInstanceError):
         res.goals = np.ones((3, 2))
+
+
+def test_ant_omni_distances_compare_as_shares_of_the_box_when_the_boxes_differ():
+    from qdnb.book.registry import config
+
+    small = config("ch4_reproducibility", "small")
+    note = dataclasses.replace(small, ant_omni_box=2.5).extent_note("ant_omni", 6.38, 1.568)
+    assert note == "as a share of the box's side: thesis 0.21 (of 30 m), this run 0.31 (of 5 m)"
+    assert config("ch4_reproducibility", "paper").extent_note("ant_omni", 6.38, 1.5) == ""
+    assert small.extent_note("halfcheetah_uni", 0.1, 0.2) == ""  # [0, 1]^2 at every scale

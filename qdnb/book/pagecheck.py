@@ -1,12 +1,15 @@
 """Checks of the rendered book, as a reader meets it.
 
 ``static_problems`` reads the HTML files (no browser): raw LaTeX left in a cell's
-output, a pandas table with its 0, 1, 2... index or cells cut to "...", a progress bar.
+output, a pandas table with its 0, 1, 2... index or cells cut to "...", a progress bar,
+and in the article's text (outside code and math) a snake_case identifier, a "± 0.0"
+spread or a figure flagged degenerate (``qdnb.plotting.degeneracies``) without a note.
 The book build refuses a page with any of them.
 
 ``browser_problems`` opens every page in headless Chromium (Selenium, Debian's
 ``chromium`` and ``chromium-driver``) and reports what only a browser sees: a
-JavaScript error, a broken image, a table or figure wider than the content column,
+JavaScript error, a broken image, a table or figure wider than the content column (a
+table scrolling inside its box counts, unless it is marked a data dump, ``.qdnb-dump``),
 ``$`` math that MathJax left unrendered, a progress-bar line in the page's text.
 """
 
@@ -82,6 +85,58 @@ class _Outputs(HTMLParser):
             self.table.append(html_lib.escape(data))
 
 
+# an identifier a reader must not meet in the text (it goes in code type: ``num_seeds``)
+SNAKE_CASE = re.compile(r"(?<![\w/.-])[a-z][a-z0-9]*(?:_[a-z0-9]+)+\b")
+# a spread from one seed, or a rounded zero spread: "± 0.0", "± 0"
+ZERO_SPREAD = re.compile(r"±\s*0\.0+(?![\d.])")
+
+
+class _ReaderText(HTMLParser):
+    """The text of a page's article as a reader reads it: not its code (``code``,
+    ``pre``, a cell's input), its math, or the navigation around it."""
+
+    VOID = _Outputs.VOID
+    SKIP_TAGS = {"code", "pre", "kbd", "samp", "script", "style", "math", "nav"}
+    SKIP_CLASSES = {"math", "highlight", "cell_input", "headerlink", "toggle-details"}
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.stack: list[tuple[str, bool, bool]] = []  # (tag, opens the article, skips)
+        self.article = self.skipped = 0
+        self.text: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        if tag in self.VOID:
+            return
+        classes = set((dict(attrs).get("class") or "").split())
+        opens = tag == "article" and "bd-article" in classes
+        skips = tag in self.SKIP_TAGS or bool(classes & self.SKIP_CLASSES)
+        self.stack.append((tag, opens, skips))
+        self.article += opens
+        self.skipped += skips
+
+    def handle_endtag(self, tag):
+        if tag in self.VOID:
+            return
+        while self.stack:
+            open_tag, opened, skipped = self.stack.pop()
+            self.article -= opened
+            self.skipped -= skipped
+            if open_tag == tag:
+                break
+
+    def handle_data(self, data):
+        if self.article and not self.skipped:
+            self.text.append(data)
+
+
+def reader_text(page_html: str) -> str:
+    """What ``_ReaderText`` keeps of a page, lines as the page breaks them."""
+    parser = _ReaderText()
+    parser.feed(page_html)
+    return " ".join(parser.text)
+
+
 def pages(html_dir: Path) -> list[Path]:
     """The book's pages (not the search, index and static files)."""
     return sorted(
@@ -99,6 +154,8 @@ def _text(fragment: str) -> str:
 
 def static_problems(html_dir: Path) -> list[str]:
     """What a reader must not see in a cell's output, found in the HTML files."""
+    from qdnb.plotting import DEGENERATE, UNEXPLAINED
+
     problems = []
     for page in pages(html_dir):
         name = page.relative_to(html_dir)
@@ -118,6 +175,17 @@ def static_problems(html_dir: Path) -> list[str]:
                 for cell in re.findall(r"<td[^>]*>(.*?)</td>", table, re.S):
                     if _text(cell).strip().endswith("..."):
                         problems.append(f"{name}: a table cell cut to '...': {_text(cell)[:60]!r}")
+        text = reader_text(page.read_text(errors="ignore"))
+        for word in sorted(set(SNAKE_CASE.findall(text))):
+            problems.append(f"{name}: an identifier in the text, not in code type: {word!r}")
+        unexplained = re.escape(DEGENERATE) + r"(.{0,300}?)" + re.escape(f"({UNEXPLAINED})")
+        for m in re.finditer(unexplained, text):
+            problems.append(
+                f"{name}: a degenerate figure without a note saying why: {m.group(1).strip()!r}"
+            )
+        for m in ZERO_SPREAD.finditer(text):
+            context = text[max(0, m.start() - 40) : m.end()].split("  ")[-1].strip()
+            problems.append(f"{name}: a zero spread (one seed?): {context!r}")
     return problems
 
 
@@ -153,9 +221,16 @@ for (const el of document.querySelectorAll('figure, img, table, div.cell_output'
     out.push(`wider than the column (${Math.round(w)} > ${Math.round(width)} px): ${what}`);
   }
 }
-for (const wrapper of document.querySelectorAll('.qdnb-table')) {
-  const w = wrapper.getBoundingClientRect().width;
-  if (w > width + 2) out.push('a table wider than the column (' + Math.round(w) + ' px)');
+for (const wrapper of document.querySelectorAll('.qdnb-table, .pst-scrollable-table-container')) {
+  if (wrapper.classList.contains('qdnb-dump')) continue;
+  // wider than the column, or scrolling sideways inside its box (hidden by a fold: not seen)
+  const box = Math.min(width, wrapper.clientWidth || width);
+  const w = Math.max(wrapper.getBoundingClientRect().width, wrapper.scrollWidth);
+  if (w > box + 2) {
+    const head = [...wrapper.querySelectorAll('th')].slice(0, 3).map(th => th.innerText.trim());
+    out.push(`a table wider than the column (${Math.round(w)} > ${Math.round(box)} px): ` +
+             head.join(' | ').slice(0, 80));
+  }
 }
 for (const o of document.querySelectorAll('div.cell_output')) {
   const text = o.innerText || '';

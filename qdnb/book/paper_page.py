@@ -8,6 +8,7 @@ from typing import Any
 
 from qdnb.book import publish, registry
 from qdnb.core import paths
+from qdnb.core.names import markdown_words
 
 
 def gigabytes(n: float) -> str:
@@ -43,9 +44,9 @@ def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
         )
         rows.append(
             {
-                "notebook": name,
-                "dry run": {"ok": "ran", "cut off": "CUT OFF"}.get(nb["status"], "FAILED"),
-                "loops": str(t["loops"]),
+                "page": registry.chapter(name).short,
+                "dry run": {"ok": "ran", "cut off": "CUT OFF"}.get(nb["status"], "FAILED")
+                + f", {t['loops']} loop{'' if t['loops'] == 1 else 's'}",
                 "hours on this CPU": hours(t["cpu_hours"])
                 + (
                     f" (and {t['loops_not_run_here']} loops it cannot run)"
@@ -53,10 +54,12 @@ def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
                     else ""
                 ),
                 "hours on one H100": gpu,
-                "device memory (largest loop)": gigabytes(t["peak_device_bytes"])
-                + ("" if t["fits_gpu"] else " (over 80 GB)"),
-                "host memory (dry run's peak)": gigabytes(t["peak_rss_bytes"]),
-                "checkpoints + datasets": gigabytes(t["checkpoint_bytes"] + t["dataset_bytes"]),
+                "memory: device (largest loop) · host (peak) · disk": (
+                    f"{gigabytes(t['peak_device_bytes'])}"
+                    + ("" if t["fits_gpu"] else " (over 80 GB)")
+                    + f" · {gigabytes(t['peak_rss_bytes'])}"
+                    + f" · {gigabytes(t['checkpoint_bytes'] + t['dataset_bytes'])}"
+                ),
                 "command": f"`{nb['command']}`",
             }
         )
@@ -97,18 +100,21 @@ def loop_rows(nb: dict[str, Any]) -> list[dict[str, str]]:
         length = sum(loop["full_steps"] for loop in loops)
         rows.append(
             {
-                "loop": name + (f" (×{runs:g})" if runs != 1 else ""),
+                "loop": markdown_words(name) + (f" (×{runs:g})" if runs != 1 else ""),
                 "length": f"{length:,} {unit}{'' if length == 1 else 's'}",
-                "compile": f"{first['compile_s']:.1f} s",
-                "per step": "—"
-                if first.get("seconds_per_step") is None
-                else f"{first['seconds_per_step']:.3g} s",
+                "compile · step": f"{first['compile_s']:.1f} s · "
+                + (
+                    "—"
+                    if first.get("seconds_per_step") is None
+                    else f"{first['seconds_per_step']:.3g} s"
+                ),
                 "this CPU": "not run here"
                 if first["kind"] == "skipped"
                 else hours(sum(loop["cpu_hours"] or 0.0 for loop in loops)),
                 "one H100": hours(None if None in gpu else sum(gpu)),
-                "state": gigabytes(max(loop["state_bytes"] for loop in loops)),
-                "device": gigabytes(max(loop["device_bytes"] for loop in loops)),
+                "memory: state · device": gigabytes(max(loop["state_bytes"] for loop in loops))
+                + " · "
+                + gigabytes(max(loop["device_bytes"] for loop in loops)),
             }
         )
     return rows
@@ -122,13 +128,13 @@ def published_rows(scale: str, where: Path | None = None) -> list[dict[str, str]
         try:
             manifest, _ = publish.read_archive(archive)
         except publish.ArchiveError as err:
-            rows.append({"notebook": archive.parent.name, "ran on": f"unreadable: {err}"})
+            rows.append({"notebook": f"`{archive.parent.name}`", "ran on": f"unreadable: {err}"})
             continue
         run = manifest["run"]
         devices = run.get("devices") or {}
         rows.append(
             {
-                "notebook": manifest["notebook"],
+                "notebook": f"`{manifest['notebook']}`",
                 "ran on": f"{devices.get('count', '?')} × {devices.get('kind', run.get('device'))}",
                 "when": manifest["published_at"].replace("T", " ").rstrip("Z") + " UTC",
                 "wall time": f"{run['wall_time_s']:.0f} s",
@@ -150,6 +156,7 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
     machines = {nb["ran_on"].get("machine") for nb in report["notebooks"].values()}
     where = first.get("machine") if len(machines) == 1 else "several machines"
     missing = [n for n in book_order() if n not in report["notebooks"]]
+    rows = chapter_rows(report)
     parts = [
         "## What each chapter needs",
         "",
@@ -157,7 +164,13 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
         f"({first['device']}, {where}); {report['wall_s'] / 60:.0f} minutes for the notebooks "
         "below (each notebook's machine, code version and date are in its section).",
         "",
-        markdown_table(chapter_rows(report)),
+        markdown_table([{k: v for k, v in r.items() if k != "command"} for r in rows]),
+        "",
+        "Each notebook runs alone at this scale with:",
+        "",
+        "```bash",
+        *(r["command"].strip("`") for r in rows),
+        "```",
     ]
     if missing:
         parts += ["", f"Not in this dry run yet: {', '.join(f'`{n}`' for n in missing)}."]
@@ -170,17 +183,24 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
             f"`make book SCALE={report['scale']}` imports each one in place of running its "
             "notebook, and its page says where and when it ran.",
             "",
-            markdown_table(published),
+            markdown_table([{k: v for k, v in r.items() if k != "archive"} for r in published]),
+            "",
+            "Their archives: " + ", ".join(r["archive"] for r in published if "archive" in r) + ".",
         ]
     parts += ["", "## Loop by loop"]
     for name, nb in in_book_order(report):
         ran = nb["ran_on"]
+        sha, _, dirty = str(ran["git"]).partition("-")
         parts += [
             "",
             f"### {registry.chapter(name).title}",
             "",
-            f"Ran {ran['date']} on {ran.get('machine', 'an unrecorded machine')}, "
-            f"code `{ran['git']}`, {nb['wall_s']:.0f} s.",
+            f"Ran {ran['date']} on {markdown_words(ran.get('machine', 'an unrecorded machine'))}, "
+            f"commit `{sha[:8]}`{' with uncommitted changes' if dirty else ''}, "
+            f"{nb['wall_s']:.0f} s.",
+            "",
+            "````{admonition} Its loops, one by one",
+            ":class: dropdown",
             "",
         ]
         if nb["error"]:
@@ -191,15 +211,20 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
         if skipped:
             parts += [
                 "Not run on this machine: "
-                + "; ".join(f"{name}: {why}" for name, why in skipped.items())
+                + "; ".join(
+                    f"{markdown_words(k)}: {markdown_words(why)}" for k, why in skipped.items()
+                )
                 + ".",
                 "",
             ]
         if nb["cuts"]:
-            cut = "; ".join(f"{c['name']}: {c['kept']:,} of {c['full']:,}" for c in nb["cuts"])
+            cut = "; ".join(
+                f"{markdown_words(c['name'])}: {c['kept']:,} of {c['full']:,}" for c in nb["cuts"]
+            )
             parts += [f"Counts cut: {cut}.", ""]
         parts.append(markdown_table(loop_rows(nb)))
         rates = sorted({loop["gpu_rate_source"] for loop in nb["loops"] if loop["gpu_rate_source"]})
         if rates:
-            parts += ["", "GPU rates: " + "; ".join(rates) + "."]
+            parts += ["", "GPU rates: " + "; ".join(markdown_words(r) for r in rates) + "."]
+        parts += ["````"]
     return "\n".join(parts) + "\n"

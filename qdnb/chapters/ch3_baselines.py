@@ -283,9 +283,9 @@ def qdpg_page_methods(cfg: BaselinesConfig, scale: str, seed: int) -> tuple[dict
     ``None`` and why when that run is missing, of another seed or of another config."""
     summary = load_summary(scale, "ch3_qdpg")
     if summary is None:
-        return None, "no ch3_qdpg run at this scale"
+        return None, "no run of the QD-PG page at this scale"
     if summary.get("seed") != seed or summary.get("config_hash") != config_hash(cfg.tasks):
-        return None, "the ch3_qdpg run used another seed or config"
+        return None, "the QD-PG page's run used another seed or config"
     results = summary["results"]
     return {
         env_name: {
@@ -294,7 +294,7 @@ def qdpg_page_methods(cfg: BaselinesConfig, scale: str, seed: int) -> tuple[dict
             if name != "QD-PG" and entry.get("ran", True)
         }
         for env_name in ENVIRONMENTS
-    }, "read from the ch3_qdpg run's summary.json"
+    }, "read from the QD-PG page's run"
 
 
 def final_table(result: Result) -> dict[str, dict[str, str]]:

@@ -1023,14 +1023,14 @@ def load_or_recompute_qdpg(
         path = qdpg_path(scale, env_name)
         loaded = None if seed_differs else load_method_result(path, digest)
         if loaded is not None:
-            results[env_name], status[env_name] = loaded, "loaded from the ch3_qdpg run"
+            results[env_name], status[env_name] = loaded, "loaded from the QD-PG page's run"
             continue
         status[env_name] = (
-            "recomputed: the ch3_qdpg run used another seed"
+            "recomputed: the QD-PG page's run used another seed"
             if seed_differs
-            else "recomputed: no ch3_qdpg run"
+            else "recomputed: no run of the QD-PG page"
             if not path.exists()
-            else "recomputed: the ch3_qdpg run used another config"
+            else "recomputed: the QD-PG page's run used another config"
         )
         key = jax.random.fold_in(jax.random.PRNGKey(seed), i)  # the ch3_qdpg notebook's key
         out = run_environment(cfg, env_name, key, progress, methods=("QD-PG",))

@@ -1,5 +1,8 @@
 """The thesis's names for the book's environments, wherever a reader sees one: titles,
-tables, legends, claims."""
+tables, legends, claims; ``markdown_words`` puts a machine-written line in a reader's
+words."""
+
+import re
 
 ENV_LABELS = {
     "pointmaze": "Point-Maze",
@@ -16,4 +19,21 @@ READER_NAMES = {
     "flt": "FLT",
     "flt_teacher_forced": "FLT, true inputs (one step)",
     "mean_frame": "mean frame",
+    "copy_previous": "previous frame copied",
+    "stoch": "stochastic mix",
+    "stoch_fresh": "stochastic mix, fresh key",
 }
+
+# a word with an underscore is an identifier or a path (a config's field, a notebook's
+# name, ``agac_torch/configs/point_maze.yaml``): a reader meets it in code type
+IDENTIFIER = re.compile(r"[A-Za-z0-9][\w./-]*_[\w./-]*[A-Za-z0-9]")
+_ENV_WORD = re.compile(r"\b(" + "|".join(sorted(ENV_LABELS, key=len, reverse=True)) + r")\b")
+
+
+def markdown_words(text: str) -> str:
+    """``text`` (a loop's name, a reason a program wrote) as Markdown for a reader: the
+    environments by their thesis names, any other identifier in code type."""
+    parts = re.split(r"(`[^`]*`)", _ENV_WORD.sub(lambda m: ENV_LABELS[m.group(1)], text))
+    return "".join(
+        p if p.startswith("`") else IDENTIFIER.sub(lambda m: f"`{m.group(0)}`", p) for p in parts
+    )

@@ -93,13 +93,70 @@ def set_style() -> None:
     )
 
 
-def show(fig: plt.Figure, caption: str, alt: str, name: str | None = None) -> None:
+DEGENERATE = "Degenerate at this scale:"
+# an image whose values span less than this share of its colour scale reads as one colour
+FLAT = 0.01
+UNEXPLAINED = "no reason given"
+
+
+def _panel_name(ax: plt.Axes, i: int) -> str:
+    title = ax.get_title() or ax.get_ylabel()
+    return f"panel {i + 1}" + (f" ({title})" if title else "")
+
+
+def degeneracies(fig: plt.Figure) -> list[str]:
+    """What a reader would see as broken in ``fig``: a uniform image (its values span
+    less than ``FLAT`` of its colour scale), a panel whose data are all NaN, a colour
+    scale with one value, a curve of a single point."""
+    found = []
+    panels = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    for i, ax in enumerate(panels):
+        name = _panel_name(ax, i)
+        for im in ax.images:
+            values = np.ma.masked_invalid(np.ma.asarray(im.get_array(), dtype=float))
+            if values.count() == 0:
+                found.append(f"{name} is an image with no finite value")
+                continue
+            if values.ndim != 2:  # an RGB image carries its own colours
+                continue
+            im.autoscale_None()  # the colour scale it is drawn with, as drawing sets it
+            scale = float(im.norm.vmax - im.norm.vmin)
+            span = float(values.max() - values.min())
+            if span <= FLAT * (scale if scale > 0 else abs(float(values.max()))):
+                found.append(
+                    f"{name} is a uniform image ({float(values.mean()):.3g}"
+                    + (f", varying by {span:.2g}" if span else "")
+                    + ")"
+                )
+        # the panel's curves (lines drawn as lines, not markers alone)
+        curves = [line for line in ax.lines if line.get_linestyle() not in ("None", "", " ")]
+        finite = [int(np.isfinite(np.asarray(c.get_ydata(), float)).sum()) for c in curves]
+        if curves and not ax.images and not ax.collections and max(finite) == 0:
+            found.append(f"{name} has no finite value to draw")
+        elif curves and not ax.images and not ax.collections and max(finite) == 1:
+            found.append(f"{name} draws each curve as a single point")
+    for ax in fig.axes:
+        bar = getattr(ax, "_colorbar", None)
+        values = None if bar is None else bar.mappable.get_array()
+        if values is not None:
+            values = np.asarray(values, dtype=float)
+            values = values[np.isfinite(values)]
+            if values.size and values.min() == values.max():
+                found.append(f"a colour bar spans a single value ({float(values[0]):.3g})")
+    return found
+
+
+def show(
+    fig: plt.Figure, caption: str, alt: str, name: str | None = None, note: str | None = None
+) -> None:
     """Display ``fig`` as a figure of the book: a PNG at twice its displayed resolution,
     shown at most the page's column wide, with its ``caption`` (MyST Markdown, shown
     beneath it and numbered by the book), its ``alt`` text (what the figure shows, for
     a reader who cannot see it) and ``name``, a label other text can refer to.  In
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
-    shrunk into the column, its fonts would fall below 9 points."""
+    shrunk into the column, its fonts would fall below 9 points.  A degenerate figure
+    (``degeneracies``) is never shown silently: its caption says what is degenerate and
+    ``note`` why (without a note the book's build refuses the page)."""
     import base64
     import io
 
@@ -115,6 +172,11 @@ def show(fig: plt.Figure, caption: str, alt: str, name: str | None = None) -> No
     if not caption.strip() or not alt.strip():
         plt.close(fig)
         raise ValueError("a book figure needs a caption and an alt text")
+    broken = degeneracies(fig)
+    if broken:
+        caption = f"{caption.rstrip()} **{DEGENERATE}** {'; '.join(broken)}. " + (
+            note.strip() if note and note.strip() else f"({UNEXPLAINED})"
+        )
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=2 * DISPLAY_DPI, bbox_inches="tight")
     plt.close(fig)

@@ -4,9 +4,12 @@
 (a meaningful index stays, as row labels), numbers to four significant digits, "—" for
 a missing value, ✓ / ✗ for booleans, every row and every character (no "..."), dicts
 and lists written out, the book's internal names (``ant_omni``, ``mean_frame``) as a
-reader knows them (``qdnb.core.names.READER_NAMES``).  ``use_book_tables()`` makes it
-the HTML of every DataFrame a notebook displays; the text form (a terminal, a test) is
-pandas' own.
+reader knows them (``qdnb.core.names.READER_NAMES``), and any other identifier (a
+config's field, ``num_critic_steps``) in code type, as a reader would type it.  A table
+fits the page's column; ``styled(df, dump=True)`` marks one that is a data dump and may
+scroll sideways (the browser check refuses any other that does).  ``use_book_tables()``
+makes ``styled`` the HTML of every DataFrame a notebook displays; the text form (a
+terminal, a test) is pandas' own.  ``mean_sd`` writes a mean over seeds as the book does.
 """
 
 from __future__ import annotations
@@ -19,10 +22,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from qdnb.core.names import READER_NAMES
+from qdnb.core.names import IDENTIFIER, READER_NAMES
 
 MISSING = "—"
 DIGITS = 4
+# a row label longer than this wraps in its cell (a short one, "PGA-ME-LS", never breaks)
+LONG_LABEL = 16
+LONG = ' class="long"'
 
 
 def cell_text(value: Any, digits: int = DIGITS) -> str:
@@ -53,6 +59,43 @@ def cell_text(value: Any, digits: int = DIGITS) -> str:
     return READER_NAMES.get(text, text) if text.strip() else MISSING
 
 
+def _identifier_html(text: str) -> str:
+    """``text`` escaped, its identifiers in code type."""
+    out, last = [], 0
+    for m in IDENTIFIER.finditer(text):
+        out += [html.escape(text[last : m.start()]), f"<code>{html.escape(m.group(0))}</code>"]
+        last = m.end()
+    return "".join(out) + html.escape(text[last:])
+
+
+def cell_html(value: Any, digits: int = DIGITS) -> str:
+    """One cell's HTML: ``cell_text``, with identifiers (a dict's keys, a name the book
+    has no reader's name for) in code type."""
+    if isinstance(value, dict) and value:
+        return ", ".join(
+            f"{_identifier_html(str(k))}: {cell_html(v, digits)}" for k, v in value.items()
+        )
+    if isinstance(value, str):
+        return _identifier_html(cell_text(value, digits))
+    return html.escape(cell_text(value, digits))
+
+
+def mean_sd(values: Any, digits: int = 1) -> str:
+    """A mean over seeds as the book writes it: ``mean ± sd (n seeds)``; one seed is its
+    value and "(1 seed)", never "± 0.0"; NaN seeds (diverged) are left out and counted."""
+    v = np.asarray(values, float).ravel()
+    finite = v[np.isfinite(v)]
+    lost = v.size - finite.size
+    if not finite.size:
+        return "diverged" if lost else MISSING
+    text = f"{finite.mean():.{digits}f}"
+    if finite.size > 1:
+        text += f" ± {finite.std():.{digits}f} ({finite.size} seeds)"
+    else:
+        text += " (1 seed)"
+    return text + (f", {lost} diverged" if lost else "")
+
+
 def _has_default_index(df: pd.DataFrame) -> bool:
     index = df.index
     return (
@@ -60,37 +103,44 @@ def _has_default_index(df: pd.DataFrame) -> bool:
     ) and index.name is None
 
 
-def styled(df: pd.DataFrame, digits: int = DIGITS) -> str:
-    """The HTML of ``df`` as a book table (see the module's docstring)."""
+def styled(df: pd.DataFrame, digits: int = DIGITS, dump: bool = False) -> str:
+    """The HTML of ``df`` as a book table (see the module's docstring); ``dump`` marks a
+    data dump, which may be wider than the column and scroll."""
     if isinstance(df, pd.Series):
         df = df.to_frame()
     show_index = not _has_default_index(df)
     head = []
     if show_index:
-        head += [f"<th>{html.escape(_label(n) if n else '')}</th>" for n in df.index.names]
-    head += [f"<th>{html.escape(_label(c))}</th>" for c in df.columns]
+        head += [f"<th>{_label_html(n) if n else ''}</th>" for n in df.index.names]
+    head += [f"<th>{_label_html(c)}</th>" for c in df.columns]
     rows = []
     for key, row in zip(df.index, df.itertuples(index=False, name=None)):
         cells = []
         if show_index:
             keys = key if isinstance(key, tuple) else (key,)
-            cells += [f"<th>{html.escape(_label(k))}</th>" for k in keys]
+            cells += [f"<th{_long(k)}>{_label_html(k)}</th>" for k in keys]
         for value in row:
-            text = html.escape(cell_text(value, digits))
+            text = cell_html(value, digits)
             numeric = isinstance(value, numbers.Number) and not isinstance(value, bool)
             cells.append(f'<td class="num">{text}</td>' if numeric else f"<td>{text}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
+    kind = "qdnb-table qdnb-dump" if dump else "qdnb-table"
     return (
-        '<div class="qdnb-table"><table>'
+        f'<div class="{kind}"><table>'
         f"<thead><tr>{''.join(head)}</tr></thead>"
         f"<tbody>{''.join(rows)}</tbody></table></div>"
     )
 
 
-def _label(key: Any) -> str:
+def _long(key: Any) -> str:
+    """The class of a row label a reader reads as a phrase, which may wrap."""
+    return LONG if len(READER_NAMES.get(str(key), str(key))) > LONG_LABEL else ""
+
+
+def _label_html(key: Any) -> str:
     if isinstance(key, tuple):
-        return " / ".join(_label(k) for k in key)
-    return READER_NAMES.get(str(key), str(key))
+        return " / ".join(_label_html(k) for k in key)
+    return _identifier_html(READER_NAMES.get(str(key), str(key)))
 
 
 def use_book_tables() -> None:
