@@ -205,6 +205,9 @@ def browser_available() -> str | None:
 # Run in each page once MathJax has typeset it: the page's problems as strings.
 _IN_PAGE = r"""
 const out = [];
+// what a reader can unfold is checked unfolded (the toggles' and <details>' contents)
+document.querySelectorAll('.toggle-hidden').forEach(e => e.classList.remove('toggle-hidden'));
+document.querySelectorAll('details').forEach(d => { d.open = true; });
 const column = document.querySelector('article.bd-article') || document.querySelector('main');
 const width = column ? column.getBoundingClientRect().width : window.innerWidth;
 for (const img of document.images) {
@@ -223,12 +226,12 @@ for (const el of document.querySelectorAll('figure, img, table, div.cell_output'
 }
 for (const wrapper of document.querySelectorAll('.qdnb-table, .pst-scrollable-table-container')) {
   if (wrapper.classList.contains('qdnb-dump')) continue;
-  // wider than the column, or scrolling sideways inside its box (hidden by a fold: not seen)
-  const box = Math.min(width, wrapper.clientWidth || width);
-  const w = Math.max(wrapper.getBoundingClientRect().width, wrapper.scrollWidth);
-  if (w > box + 2) {
+  // wider than the column, or scrolling sideways inside its box
+  const w = wrapper.getBoundingClientRect().width;
+  if (w > width + 2 || wrapper.scrollWidth > wrapper.clientWidth + 2) {
     const head = [...wrapper.querySelectorAll('th')].slice(0, 3).map(th => th.innerText.trim());
-    out.push(`a table wider than the column (${Math.round(w)} > ${Math.round(box)} px): ` +
+    out.push(`a table wider than the column (${wrapper.scrollWidth} > ` +
+             `${Math.min(wrapper.clientWidth, Math.round(width))} px): ` +
              head.join(' | ').slice(0, 80));
   }
 }
