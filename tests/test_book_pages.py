@@ -52,6 +52,8 @@ def test_identifiers_are_code_long_labels_wrap_and_only_a_dump_may_scroll():
     assert "<th>ME</th>" in styled(pd.DataFrame({"a": [1]}, index=pd.Index(["ME"], name="m")))
     assert cell_html({"lr_actor": 3e-4, "steps": 10}) == "<code>lr_actor</code>: 0.0003, steps: 10"
     assert 'class="qdnb-table qdnb-dump"' in styled(df, dump=True)
+    assert cell_html(["num_seeds", 2.5]) == "<code>num_seeds</code>, 2.5"
+    assert cell_html({"ant_omni": 1}) == "Ant-Omni: 1"  # a key the reader has a name for
 
 
 def test_a_mean_over_one_seed_has_no_spread_and_diverged_seeds_are_counted():
@@ -71,6 +73,10 @@ def test_machine_written_words_become_a_readers():
     assert markdown_words("already `ch3_qdpg`, halfcheetah_uni") == (
         "already `ch3_qdpg`, Halfcheetah-Uni"
     )
+    # code spans, paths, links and addresses stay as they are
+    for kept in ("`data/qdt/ant_omni.npz`", "[docs](https://x.org/a_b)", "see https://x.org/a_b"):
+        assert markdown_words(kept) == kept
+    assert markdown_words("data/runs/small/antmaze/x.npz") == "data/runs/small/antmaze/x.npz"
 
 
 def test_the_sidebar_groups_the_pages_by_the_thesiss_chapters():
@@ -114,6 +120,12 @@ def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
         "panel 3 draws each curve as a single point",
         "a colour bar spans a single value (0.3)",
     ]
+    other, axs = plt.subplots(1, 3, figsize=(6, 2))  # masked points are not data; words are
+    axs[0].plot(np.ma.masked_array([1.0, 2.0, 3.0], [True, True, False]))
+    axs[1].plot(["a", "b"], [1, 2])
+    axs[2].plot([0, 1], ["x", "y"])
+    assert plotting.degeneracies(other) == ["panel 1 draws each curve as a single point"]
+    plt.close(other)
     shown = []
     monkeypatch.setattr("IPython.display.display", lambda obj, **kw: shown.append(kw))
     show(fig, "Losses.", "Four panels.")

@@ -84,6 +84,11 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
             "(no reason given)</figcaption>",
         )
     )
+    # a stray closing tag does not end the reading of the page
+    text = pagecheck.reader_text(
+        '<article class="bd-article"><p>a</p></span><p>num_seeds</p><code>x_y</code></article>'
+    )
+    assert "num_seeds" in text and "x_y" not in text
     problems = pagecheck.static_problems(html)
     assert any(
         "words.html: an identifier in the text" in p and "'num_seeds'" in p for p in problems

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from qdnb.book import publish, runner, scorecard, verdicts
+from qdnb.book import publish, runner, scorecard
 from qdnb.core import claims, paths
 
 HOLDS, FAILS, CANNOT = (scorecard.SYMBOL[k] for k in ("holds", "fails", "cannot show"))
@@ -13,7 +13,6 @@ HOLDS, FAILS, CANNOT = (scorecard.SYMBOL[k] for k in ("holds", "fails", "cannot 
 @pytest.fixture
 def runs(tmp_path, monkeypatch):
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(verdicts, "PUBLISHED", tmp_path / "published")
     monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
     return tmp_path / "runs"
 

@@ -16,8 +16,7 @@ from qdnb.core.config import config_hash
 @pytest.fixture
 def runs(tmp_path, monkeypatch):
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(verdicts, "PUBLISHED", tmp_path / "published")
-    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "archives")
+    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
     return tmp_path / "runs"
 
 
@@ -70,7 +69,7 @@ def test_the_digest_follows_the_notebooks_code_cells_not_its_prose(tmp_path, mon
 def test_published_verdicts_show_in_a_build_that_did_not_run_the_scale(runs):
     finished_run()
     path = verdicts.publish_verdicts("small", "ch2_primer")
-    assert path == verdicts.PUBLISHED / "small" / "ch2_primer" / "verdicts.json"
+    assert path == publish.PUBLISHED / "small" / "ch2_primer" / "verdicts.json"
     record = json.loads(path.read_text())
     assert record["claims"][0]["claim"] == "NS reaches the goal" and record["run"]["seed"] == 0
     assert "ipynb" not in json.dumps(record)  # the verdicts, not the notebook
@@ -85,34 +84,53 @@ def test_published_verdicts_show_in_a_build_that_did_not_run_the_scale(runs):
     assert "1 of them verdicts published in the repository" in scorecard.tally(by_scale)
 
 
-def test_a_verdict_is_stale_once_the_config_or_code_changes_and_a_run_here_comes_first(runs):
+def test_a_verdict_is_stale_once_the_config_or_code_changes_and_a_run_here_comes_first(
+    runs, monkeypatch
+):
     finished_run(config_hash="an older config")
     verdicts.publish_verdicts("small", "ch2_primer")
-    finished_run(code_digest=None, name="ch3_evolution")
+    finished_run(name="ch3_evolution", code_digest="an older code")
     verdicts.publish_verdicts("small", "ch3_evolution")
+    finished_run(name="ch4_qdt", code_digest=None)  # from before digests were recorded
+    verdicts.publish_verdicts("small", "ch4_qdt")
     shutil.rmtree(runs / "small")
     by_scale = scorecard.summaries()
     assert by_scale["small"]["ch2_primer"]["stale"] == [
         "the chapter's config at this scale changed"
     ]
-    assert by_scale["small"]["ch3_evolution"]["stale"] == ["its code was not recorded"]
-    assert "**stale**" in scorecard.scorecard(by_scale)
+    assert by_scale["small"]["ch3_evolution"]["stale"] == ["the chapter's code changed"]
+    assert by_scale["small"]["ch4_qdt"]["stale"] == []
+    table = scorecard.scorecard(by_scale)
+    (row,) = [
+        line for line in table.splitlines() if "NS reaches the goal" in line and "QDT" in line
+    ]
+    assert "whether it is current cannot be told" in row and "**stale**" not in row
+    (row,) = [line for line in table.splitlines() if "evolution strategies" in line]
+    assert "✓\u00a0holds\u00a0(stale)" in row and "**stale**: the chapter's code changed" in row
     assert "2 stale" in scorecard.tally(by_scale)
     finished_run(results={"claims": [claims.record("ch2/ns", "NS reaches", False, "0/2")]})
     here = scorecard.summaries()["small"]["ch2_primer"]  # this machine's run comes first
     assert "published" not in here and here["results"]["claims"][0]["status"] == "fails"
 
 
-def test_a_published_archive_gives_its_verdicts_too(runs):
+def test_a_published_archive_gives_its_verdicts_too_and_a_broken_one_none(runs):
     from test_publish import fake_run
 
     claim = claims.record("ch2/ns", "NS reaches the goal", True, "5/5 seeds")
     fake_run("paper", results={"headline": "h", "claims": [claim]})
-    publish.publish("paper", "ch2_primer")
+    archive = publish.publish("paper", "ch2_primer")
+    fake_run("paper", name="ch3_qdpg", results={"headline": "before claims were itemised"})
+    publish.publish("paper", "ch3_qdpg")
     shutil.rmtree(runs / "paper")
-    shown = scorecard.summaries()["paper"]["ch2_primer"]
+    by_scale = scorecard.summaries()
+    shown = by_scale["paper"]["ch2_primer"]
     assert shown["published"]["published_at"] and shown["results"]["claims"] == [claim]
-    assert "its code was not recorded" in shown["stale"]
+    # (fake_run's config hash is not the chapter's; its code was not recorded: no reason)
+    assert shown["stale"] == ["the chapter's config at this scale changed"]
+    (row,) = [r for r in scorecard.scorecard(by_scale).splitlines() if "Ch. 3: QD-PG" in r]
+    assert "*no claim recorded yet*" in row and row.endswith("| ran |")  # a run, no claims
+    archive.write_bytes(archive.read_bytes()[:100])  # a broken archive: the paper page names it
+    assert scorecard.summaries()["paper"]["ch2_primer"] is None
 
 
 def test_publishing_the_verdicts_of_a_run_that_did_not_finish_is_refused(runs):
@@ -124,3 +142,6 @@ def test_publishing_the_verdicts_of_a_run_that_did_not_finish_is_refused(runs):
         verdicts.publish_verdicts("small", "ch2_primer")
     with pytest.raises(ValueError, match="unknown chapter"):
         verdicts.publish_verdicts("small", "ch9_nothing")
+    finished_run(scale="tiny")
+    with pytest.raises(ValueError, match="checks code paths only"):
+        verdicts.publish_verdicts("tiny", "ch2_primer")

@@ -184,13 +184,15 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
             "notebook, and its page says where and when it ran.",
             "",
             markdown_table([{k: v for k, v in r.items() if k != "archive"} for r in published]),
-            "",
-            "Their archives: " + ", ".join(r["archive"] for r in published if "archive" in r) + ".",
         ]
+        archives = [r["archive"] for r in published if "archive" in r]
+        if archives:
+            parts += ["", "Their archives: " + ", ".join(archives) + "."]
     parts += ["", "## Loop by loop"]
     for name, nb in in_book_order(report):
         ran = nb["ran_on"]
-        sha, _, dirty = str(ran["git"]).partition("-")
+        git = str(ran["git"])
+        sha, dirty = git.removesuffix("-dirty"), git.endswith("-dirty")
         parts += [
             "",
             f"### {registry.chapter(name).title}",
@@ -199,12 +201,10 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
             f"commit `{sha[:8]}`{' with uncommitted changes' if dirty else ''}, "
             f"{nb['wall_s']:.0f} s.",
             "",
-            "````{admonition} Its loops, one by one",
-            ":class: dropdown",
-            "",
         ]
-        if nb["error"]:
+        if nb["error"]:  # in sight, not folded
             parts += ["```text", nb["error"].strip(), "```", ""]
+        parts += ["````{admonition} Its loops, one by one", ":class: dropdown", ""]
         skipped = {
             loop["name"]: loop["reason"] for loop in nb["loops"] if loop["kind"] == "skipped"
         }

@@ -106,7 +106,7 @@ def config(name: str, scale: str):
 
 def toc() -> str:
     """The book's ``_toc.yml``: the intro, the pages grouped by the thesis's chapter
-    (``Chapter.part``), then what the ``paper`` scale needs, how to reproduce the book
+    (``Chapter.part``), then how to reproduce the book, what the ``paper`` scale needs
     and the references."""
     lines = [
         "# Written by `python -m qdnb book` from qdnb.book.registry.CHAPTERS.",

@@ -17,6 +17,7 @@ from qdnb.book import publish, registry, verdicts
 from qdnb.core.claims import CANNOT_SHOW, FAILS, HOLDS
 from qdnb.core.config import SCALES
 from qdnb.core.io import load_summary
+from qdnb.core.names import markdown_words
 
 # what each scale is for, in a sentence (the chapter boxes and the intro)
 SCALE_MEANING = {
@@ -31,13 +32,16 @@ SYMBOL = {HOLDS: "✓\u00a0holds", FAILS: "✗\u00a0fails", CANNOT_SHOW: "—\u0
 NOT_RUN = "not run"
 # at tiny a check ran its code path; its numbers are no verdict, so none is printed
 RAN = "ran (no verdict at\u00a0`tiny`)"
-NO_VERDICT = ("tiny",)
+STALE = "\u00a0(stale)"
 
 
-def status_text(claim: dict[str, str], scale: str) -> str:
+def status_text(claim: dict[str, str], scale: str, summary: dict | None = None) -> str:
     """A claim's status as a reader sees it: ✓ / ✗ / — at a scale that is evidence,
-    "ran" at ``tiny``."""
-    return RAN if scale in NO_VERDICT else SYMBOL[claim["status"]]
+    marked stale when its published run no longer describes the code; "ran" at
+    ``tiny``."""
+    if scale in verdicts.NO_VERDICT:
+        return RAN
+    return SYMBOL[claim["status"]] + (STALE if (summary or {}).get("stale") else "")
 
 
 def summaries(scales: tuple[str, ...] = SCALES) -> dict[str, dict[str, dict | None]]:
@@ -56,16 +60,21 @@ def summaries(scales: tuple[str, ...] = SCALES) -> dict[str, dict[str, dict | No
 
 
 def provenance_note(summary: dict) -> str:
-    """For published verdicts: where, when, from which commit, and whether stale."""
+    """For published verdicts: where, when, from which commit, and whether stale (or,
+    for a run from before code digests were recorded, that it cannot be told)."""
     pub = summary.get("published")
     if not pub:
         return ""
     note = (
-        f"published run ({pub.get('host')}, {str(pub.get('published_at'))[:10]}, "
-        f"`{str(summary.get('git_sha'))[:8]}`)"
+        f"published run ({markdown_words(str(pub.get('host')))}, "
+        f"{str(pub.get('published_at'))[:10]}, `{str(summary.get('git_sha'))[:8]}`)"
     )
     stale = summary.get("stale") or []
-    return note + (f"; **stale**: {'; '.join(stale)}" if stale else "")
+    if stale:
+        return note + f"; **stale**: {'; '.join(stale)}"
+    if summary.get("code_digest") is None:
+        return note + "; its code was not recorded: whether it is current cannot be told"
+    return note
 
 
 def claims_of(summary: dict | None) -> list[dict[str, str]] | None:
@@ -80,15 +89,18 @@ def _table_text(text: str) -> str:
     return html.escape(text, quote=False).replace("|", "&#124;")
 
 
-def _cell(claim: dict[str, str] | None, summary: dict | None, scale: str) -> str:
+def _cell(claim: dict[str, str] | None, summary: dict | None, scale: str, first: bool) -> str:
+    """A claim's cell at ``scale``; the first of a page's claims also says where a
+    published run came from."""
     if summary is None:
         return NOT_RUN
     if claim is None:
         return "ran before claims were itemised"
     numbers = _table_text(claim["numbers"])
-    note = provenance_note(summary)
+    note = provenance_note(summary) if first else ""
     note = f"<br>{note}" if note else ""
-    return f'{status_text(claim, scale)}<br><span class="qdnb-numbers">{numbers}{note}</span>'
+    status = status_text(claim, scale, summary)
+    return f'{status}<br><span class="qdnb-numbers">{numbers}{note}</span>'
 
 
 def where(scale: str, name: str) -> str:
@@ -121,7 +133,7 @@ def scorecard(by_scale: dict[str, dict[str, dict | None]]) -> str:
                 + " |"
             )
         for i, (claim_id, text) in enumerate(rows.items()):
-            cells = [_cell(found[s].get(claim_id), runs[s], s) for s in scales]
+            cells = [_cell(found[s].get(claim_id), runs[s], s, i == 0) for s in scales]
             page = link if i == 0 else ""  # the page once, atop its claims
             lines.append(f"| {page} | {_table_text(text)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -136,7 +148,7 @@ def tally(by_scale: dict[str, dict[str, dict | None]]) -> str:
         if not ran:
             out.append(f"- **`{s}`**: not run on this build's machine, none published.")
             continue
-        if s in NO_VERDICT:
+        if s in verdicts.NO_VERDICT:
             out.append(
                 f"- **`{s}`** ({SCALE_MEANING[s]}): {len(records)} claim checks ran on "
                 f"{len(ran)} of {len(runs)} pages; no verdict is drawn at this scale."

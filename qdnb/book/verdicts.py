@@ -7,8 +7,10 @@ executed notebook, no artifact).  The book reads them for a scale whose page did
 run on this machine (a page's own run always takes precedence), and marks them
 **stale** when what computed them has changed since: the chapter's config at that scale
 (its hash), or its computation's code (``code_digest``: the notebook's code cells and
-every ``qdnb`` module they and the chapter's module import, but the book's and the
-figures' modules, which only present results; the notebook's prose changes nothing).
+every ``qdnb`` module they and the chapter's module import, but ``PRESENTATION``'s: the
+book's, the figures' and tables', the reader's names; the notebook's prose changes
+nothing).  Of a run from before code digests were recorded, the book says that whether
+it is current cannot be told.
 """
 
 from __future__ import annotations
@@ -28,10 +30,12 @@ from qdnb.core import paths
 from qdnb.core.config import check_scale, config_hash
 from qdnb.core.io import atomic_write_json, load_summary
 
-PUBLISHED = paths.DATA / "published"
+# the scales whose claim checks are code paths, not evidence: no verdict is kept or printed
+NO_VERDICT = ("tiny",)
 FILE = "verdicts.json"
 # modules that present results and compute none: a change there leaves a verdict fresh
-PRESENTATION = ("qdnb.book", "qdnb.plotting")
+# (the book, the figures and tables, the names a reader sees)
+PRESENTATION = ("qdnb.book", "qdnb.plotting", "qdnb.core.names")
 # what a verdict keeps of its run's summary.json
 KEPT = ("seed", "config_hash", "code_digest", "git_sha", "device", "devices", "wall_time_s")
 
@@ -101,8 +105,25 @@ def code_digest(name: str) -> str:
     return h.hexdigest()[:16]
 
 
-def path(scale: str, notebook: str, where: Path | None = None) -> Path:
-    return (where or PUBLISHED) / scale / notebook / FILE
+def path(scale: str, notebook: str) -> Path:
+    """Where the verdicts of ``notebook`` at ``scale`` are kept, beside its archive."""
+    return publish.archive_path(scale, notebook).with_name(FILE)
+
+
+def _record(
+    notebook: str, scale: str, summary: dict, published_at: str, host: str | None
+) -> dict[str, Any]:
+    results = summary.get("results", {})
+    return {
+        "format": 1,
+        "notebook": notebook,
+        "scale": scale,
+        "published_at": published_at,
+        "host": host,
+        "run": {k: summary.get(k) for k in KEPT},
+        "headline": results.get("headline", ""),
+        "claims": results.get("claims"),
+    }
 
 
 def publish_verdicts(scale: str, notebook: str) -> Path:
@@ -110,6 +131,8 @@ def publish_verdicts(scale: str, notebook: str) -> Path:
     into the repository (``path``); a clear error when there is no such run."""
     check_scale(scale)
     registry.chapter(notebook)
+    if scale in NO_VERDICT:
+        raise ValueError(f"scale {scale!r} checks code paths only: it has no verdicts to publish")
     summary = load_summary(scale, notebook)
     execution = paths.run_dir(scale, notebook, create=False) / "execution.json"
     finished = execution.exists() and json.loads(execution.read_text()).get("status") == "ok"
@@ -118,45 +141,30 @@ def publish_verdicts(scale: str, notebook: str) -> Path:
             f"no finished run of {notebook!r} at scale {scale!r} to publish the verdicts of; "
             f"run `python -m qdnb run {notebook} --scale {scale}` first"
         )
-    claims = summary.get("results", {}).get("claims")
-    if claims is None:
+    if summary.get("results", {}).get("claims") is None:
         raise ValueError(f"the run of {notebook!r} at scale {scale!r} itemised no claims")
-    record = {
-        "format": 1,
-        "notebook": notebook,
-        "scale": scale,
-        "published_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "host": platform.node(),
-        "run": {k: summary.get(k) for k in KEPT},
-        "headline": summary.get("results", {}).get("headline", ""),
-        "claims": claims,
-    }
-    return atomic_write_json(path(scale, notebook), record)
+    imported = publish.imported(scale, notebook)  # computed elsewhere: that host, not this one
+    host = imported.get("host") if imported else platform.node()
+    now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return atomic_write_json(path(scale, notebook), _record(notebook, scale, summary, now, host))
 
 
-def published(scale: str, notebook: str, where: Path | None = None) -> dict[str, Any] | None:
+def published(scale: str, notebook: str) -> dict[str, Any] | None:
     """The verdicts published for ``notebook`` at ``scale``: its ``verdicts.json``, else
-    the summary inside a whole run's published archive (``qdnb.book.publish``), else
-    ``None``."""
-    p = path(scale, notebook, where)
+    the summary inside a whole run's published archive (``qdnb.book.publish``; one that
+    fails its checks gives none: the paper page names it), else ``None``."""
+    p = path(scale, notebook)
     if p.exists():
         return json.loads(p.read_text())
     archive = publish.archive_path(scale, notebook)
-    if where is None and archive.exists():
+    if not archive.exists():
+        return None
+    try:
         manifest, contents = publish.read_archive(archive)
-        summary = json.loads(contents["summary.json"])
-        claims = summary.get("results", {}).get("claims")
-        if claims is not None:
-            return {
-                "notebook": notebook,
-                "scale": scale,
-                "published_at": manifest["published_at"],
-                "host": manifest.get("host"),
-                "run": {k: summary.get(k) for k in KEPT},
-                "headline": summary["results"].get("headline", ""),
-                "claims": claims,
-            }
-    return None
+    except publish.ArchiveError:
+        return None
+    summary = json.loads(contents["summary.json"])
+    return _record(notebook, scale, summary, manifest["published_at"], manifest.get("host"))
 
 
 def stale_reasons(record: dict[str, Any]) -> list[str]:
@@ -165,9 +173,7 @@ def stale_reasons(record: dict[str, Any]) -> list[str]:
     reasons = []
     if run.get("config_hash") != config_hash(registry.config(name, scale)):
         reasons.append("the chapter's config at this scale changed")
-    if run.get("code_digest") is None:
-        reasons.append("its code was not recorded")
-    elif run["code_digest"] != code_digest(name):
+    if run.get("code_digest") is not None and run["code_digest"] != code_digest(name):
         reasons.append("the chapter's code changed")
     return reasons
 
@@ -179,7 +185,7 @@ def as_summary(record: dict[str, Any]) -> dict[str, Any]:
         "notebook": record["notebook"],
         "scale": record["scale"],
         **record["run"],
-        "results": {"headline": record.get("headline", ""), "claims": record["claims"]},
+        "results": {"headline": record.get("headline", ""), "claims": record.get("claims")},
         "published": {k: record.get(k) for k in ("published_at", "host")},
         "stale": stale_reasons(record),
     }

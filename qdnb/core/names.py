@@ -26,14 +26,24 @@ READER_NAMES = {
 
 # a word with an underscore is an identifier or a path (a config's field, a notebook's
 # name, ``agac_torch/configs/point_maze.yaml``): a reader meets it in code type
-IDENTIFIER = re.compile(r"[A-Za-z0-9][\w./-]*_[\w./-]*[A-Za-z0-9]")
-_ENV_WORD = re.compile(r"\b(" + "|".join(sorted(ENV_LABELS, key=len, reverse=True)) + r")\b")
+IDENTIFIER = re.compile(r"(?<![\w/.:-])[A-Za-z0-9][\w./-]*_[\w./-]*[A-Za-z0-9]")
+# an environment's internal name standing as a word of its own (not inside a path)
+_ENV_WORD = re.compile(
+    r"(?<![\w/.-])(" + "|".join(sorted(ENV_LABELS, key=len, reverse=True)) + r")(?![\w/.-])"
+)
+# what is left as written: code spans, link targets, addresses
+_KEPT = re.compile(r"(`[^`]*`|\]\([^)]*\)|<?https?://\S+)")
 
 
 def markdown_words(text: str) -> str:
     """``text`` (a loop's name, a reason a program wrote) as Markdown for a reader: the
-    environments by their thesis names, any other identifier in code type."""
-    parts = re.split(r"(`[^`]*`)", _ENV_WORD.sub(lambda m: ENV_LABELS[m.group(1)], text))
-    return "".join(
-        p if p.startswith("`") else IDENTIFIER.sub(lambda m: f"`{m.group(0)}`", p) for p in parts
-    )
+    environments by their thesis names, any other identifier in code type; code spans,
+    links and addresses stay as they are."""
+    out = []
+    for part in _KEPT.split(text):
+        if _KEPT.fullmatch(part):
+            out.append(part)
+            continue
+        part = _ENV_WORD.sub(lambda m: ENV_LABELS[m.group(1)], part)
+        out.append(IDENTIFIER.sub(lambda m: f"`{m.group(0)}`", part))
+    return "".join(out)

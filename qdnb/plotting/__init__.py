@@ -128,22 +128,34 @@ def degeneracies(fig: plt.Figure) -> list[str]:
                     + (f", varying by {span:.2g}" if span else "")
                     + ")"
                 )
-        # the panel's curves (lines drawn as lines, not markers alone)
+        # the panel's curves (lines drawn as lines, not markers alone), when it has
+        # nothing else (an image, a scatter, a band) to show
         curves = [line for line in ax.lines if line.get_linestyle() not in ("None", "", " ")]
-        finite = [int(np.isfinite(np.asarray(c.get_ydata(), float)).sum()) for c in curves]
-        if curves and not ax.images and not ax.collections and max(finite) == 0:
-            found.append(f"{name} has no finite value to draw")
-        elif curves and not ax.images and not ax.collections and max(finite) == 1:
-            found.append(f"{name} draws each curve as a single point")
+        values = [_finite(c.get_ydata()) for c in curves]
+        finite = [None if v is None else v.size for v in values]
+        if curves and not ax.images and not ax.collections and None not in finite:
+            if max(finite) == 0:
+                found.append(f"{name} has no finite value to draw")
+            elif max(finite) == 1:
+                found.append(f"{name} draws each curve as a single point")
     for ax in fig.axes:
         bar = getattr(ax, "_colorbar", None)
-        values = None if bar is None else bar.mappable.get_array()
-        if values is not None:
-            values = np.asarray(values, dtype=float)
-            values = values[np.isfinite(values)]
-            if values.size and values.min() == values.max():
-                found.append(f"a colour bar spans a single value ({float(values[0]):.3g})")
+        values = None if bar is None else _finite(bar.mappable.get_array())
+        if values is not None and values.size and values.min() == values.max():
+            found.append(f"a colour bar spans a single value ({float(values[0]):.3g})")
     return found
+
+
+def _finite(data) -> np.ndarray | None:
+    """The finite, unmasked values of ``data`` as floats; ``None`` for data that are not
+    numbers (dates, categories) or no data."""
+    if data is None:
+        return None
+    try:
+        values = np.ma.masked_invalid(np.ma.asarray(data, dtype=float))
+    except (TypeError, ValueError):
+        return None
+    return values.compressed()
 
 
 def show(

@@ -72,9 +72,9 @@ def cell_html(value: Any, digits: int = DIGITS) -> str:
     """One cell's HTML: ``cell_text``, with identifiers (a dict's keys, a name the book
     has no reader's name for) in code type."""
     if isinstance(value, dict) and value:
-        return ", ".join(
-            f"{_identifier_html(str(k))}: {cell_html(v, digits)}" for k, v in value.items()
-        )
+        return ", ".join(f"{_label_html(k)}: {cell_html(v, digits)}" for k, v in value.items())
+    if isinstance(value, (list, tuple)) and value:
+        return ", ".join(cell_html(v, digits) for v in value)
     if isinstance(value, str):
         return _identifier_html(cell_text(value, digits))
     return html.escape(cell_text(value, digits))
