@@ -603,9 +603,12 @@ SCALES = {
         representative_episodes=6,
         ant_omni_box=2.5,
     ),
+    # small's budget, by the notebook's rule (near 15 minutes on 2 cores): 16 evaluations
+    # took 1,236 s on a quiet machine (2026-12-06; the methods' loops 922 s, 58 s an
+    # evaluation, 314 s outside them), so 10 evaluations (about 890 s)
     "small": ReproducibilityConfig(
         num_seeds=3,
-        num_iterations=15,
+        num_iterations=9,
         env_batch=64,
         num_episodes=4,
         num_cells=16,
