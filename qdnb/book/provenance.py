@@ -171,8 +171,10 @@ class Run:
         self.config = cfg
         self.dir = paths.run_dir(scale, notebook)
         self.started = time.time()
-        # what computed the results, as published verdicts are checked against it
+        # what computed the results, as published verdicts are checked against it (read
+        # when the run starts: a commit made while it runs is not its code)
         self.code_digest = verdicts.code_digest(notebook) if notebook in registry.names() else None
+        self.git_sha = git_sha()
         self.checkpoints = mode = checkpoint_mode()
         checkpoint.activate(
             None
@@ -216,7 +218,7 @@ class Run:
                 "resumed": checkpoint.resumed(),
                 **checkpoint.cost(),
             },
-            "git_sha": git_sha(),
+            "git_sha": self.git_sha,
             "wall_time_s": round(time.time() - self.started, 2),
             "results": results,
         }
