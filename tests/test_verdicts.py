@@ -38,6 +38,7 @@ def finished_run(scale="small", name="ch2_primer", **changes):
         },
         **changes,
     }
+    nbformat.write(nbformat.v4.new_notebook(), d / f"{name}.ipynb")
     (d / "summary.json").write_text(json.dumps(summary))
     (d / "execution.json").write_text(json.dumps({"status": "ok"}))
     return d

@@ -70,22 +70,33 @@ def run_files(run_dir: Path) -> list[Path]:
     )
 
 
-def publish(scale: str, notebook: str, dest: Path | None = None) -> Path:
-    """Pack the finished run of ``notebook`` at ``scale`` into one archive (by default
-    ``archive_path``) and return its path."""
+def finished_summary(scale: str, notebook: str) -> dict[str, Any]:
+    """The ``summary.json`` of the finished run of ``notebook`` at ``scale`` (its executed
+    notebook, summary and execution record there, the execution ``ok``); an
+    ``ArchiveError`` saying what is missing and how to make the run otherwise."""
     check_scale(scale)
     registry.chapter(notebook)
     run_dir = paths.run_dir(scale, notebook, create=False)
     needed = [run_dir / f"{notebook}.ipynb", run_dir / "summary.json", run_dir / "execution.json"]
+    command = f"`python -m qdnb run {notebook} --scale {scale}`"
     missing = [p.name for p in needed if not p.exists()]
     if missing:
         raise ArchiveError(
             f"no finished run of {notebook!r} at scale {scale!r} to publish (missing: "
-            f"{', '.join(missing)}); run `python -m qdnb run {notebook} --scale {scale}` first"
+            f"{', '.join(missing)}); run {command} first"
         )
     if json.loads(needed[2].read_text()).get("status") != "ok":
-        raise ArchiveError(f"the run of {notebook!r} at scale {scale!r} did not finish")
-    summary = json.loads(needed[1].read_text())
+        raise ArchiveError(
+            f"the run of {notebook!r} at scale {scale!r} did not finish; run {command} again"
+        )
+    return json.loads(needed[1].read_text())
+
+
+def publish(scale: str, notebook: str, dest: Path | None = None) -> Path:
+    """Pack the finished run of ``notebook`` at ``scale`` into one archive (by default
+    ``archive_path``) and return its path."""
+    summary = finished_summary(scale, notebook)
+    run_dir = paths.run_dir(scale, notebook, create=False)
     files = {str(f.relative_to(run_dir).as_posix()): f.read_bytes() for f in run_files(run_dir)}
     manifest = {
         "format": 1,

@@ -27,8 +27,8 @@ import nbformat
 
 from qdnb.book import publish, registry
 from qdnb.core import paths
-from qdnb.core.config import check_scale, config_hash
-from qdnb.core.io import atomic_write_json, load_summary
+from qdnb.core.config import config_hash
+from qdnb.core.io import atomic_write_json
 
 # the scales whose claim checks are code paths, not evidence: no verdict is kept or printed
 NO_VERDICT = ("tiny",)
@@ -129,18 +129,9 @@ def _record(
 def publish_verdicts(scale: str, notebook: str) -> Path:
     """Copy the claims and provenance of the finished run of ``notebook`` at ``scale``
     into the repository (``path``); a clear error when there is no such run."""
-    check_scale(scale)
-    registry.chapter(notebook)
     if scale in NO_VERDICT:
         raise ValueError(f"scale {scale!r} checks code paths only: it has no verdicts to publish")
-    summary = load_summary(scale, notebook)
-    execution = paths.run_dir(scale, notebook, create=False) / "execution.json"
-    finished = execution.exists() and json.loads(execution.read_text()).get("status") == "ok"
-    if summary is None or not finished:
-        raise ValueError(
-            f"no finished run of {notebook!r} at scale {scale!r} to publish the verdicts of; "
-            f"run `python -m qdnb run {notebook} --scale {scale}` first"
-        )
+    summary = publish.finished_summary(scale, notebook)
     if summary.get("results", {}).get("claims") is None:
         raise ValueError(f"the run of {notebook!r} at scale {scale!r} itemised no claims")
     imported = publish.imported(scale, notebook)  # computed elsewhere: that host, not this one
