@@ -89,6 +89,9 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
         '<article class="bd-article"><p>a</p></span><p>num_seeds</p><code>x_y</code></article>'
     )
     assert "num_seeds" in text and "x_y" not in text
+    outputs = pagecheck._Outputs()
+    outputs.feed('<div class="cell_output"><p>a</p></span><p>$10^6$</p></div><p>$x^2$</p>')
+    assert ["".join(o["text"]) for o in outputs.outputs] == ["a$10^6$"]
     problems = pagecheck.static_problems(html)
     assert any(
         "words.html: an identifier in the text" in p and "'num_seeds'" in p for p in problems

@@ -61,7 +61,8 @@ class _Outputs(HTMLParser):
             self.table.append(self.get_starttag_text() or "")
 
     def handle_endtag(self, tag):
-        if tag in self.VOID:
+        # a stray closing tag closes nothing (as in ``_ReaderText``)
+        if tag in self.VOID or all(open_tag != tag for open_tag, _, _ in self.stack):
             return
         while self.stack:
             open_tag, opened_output, opened_math = self.stack.pop()
