@@ -77,8 +77,13 @@ def computation_files(name: str) -> list[Path]:
     """The files a chapter's results depend on: its notebook, its module and every
     ``qdnb`` module they import, transitively (packages' ``__init__`` included), but
     ``PRESENTATION``'s (of the notebook, ``code_digest`` reads the code cells)."""
-    chapter = registry.chapter(name)
-    todo = _imported(_notebook_source(chapter.notebook)) | {f"qdnb.chapters.{name}"}
+    notebook = registry.chapter(name).notebook
+    return [notebook] + _modules(name, _notebook_source(notebook))
+
+
+def _modules(name: str, notebook_source: str) -> list[Path]:
+    """The module files of ``computation_files``, given the notebook's code."""
+    todo = _imported(notebook_source) | {f"qdnb.chapters.{name}"}
     seen: dict[str, Path] = {}
     while todo:
         module = todo.pop()
@@ -91,15 +96,15 @@ def computation_files(name: str) -> list[Path]:
             continue
         seen[module] = path
         todo |= _imported(path.read_text())
-    return [chapter.notebook] + sorted(set(seen.values()))
+    return sorted(set(seen.values()))
 
 
 def code_digest(name: str) -> str:
     """A digest of ``computation_files(name)``: their paths and contents (the
     notebook's code cells only)."""
-    notebook, *modules = computation_files(name)
-    h = hashlib.sha256(_notebook_source(notebook).encode())
-    for f in modules:
+    source = _notebook_source(registry.chapter(name).notebook)
+    h = hashlib.sha256(source.encode())
+    for f in _modules(name, source):
         h.update(str(f.relative_to(paths.ROOT)).encode())
         h.update(f.read_bytes())
     return h.hexdigest()[:16]
