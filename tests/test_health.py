@@ -9,9 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from qdnb.chapters.ch3_qdpg import beats, mean_text, per_seed
+from qdnb.chapters.ch3_qdpg import beats, per_seed
 from qdnb.core import health
 from qdnb.core.evaluation import Evaluation
+from qdnb.core.names import mean_sd
 from qdnb.envs import make_env
 from qdnb.qd.algorithms import run_seeds
 
@@ -90,5 +91,5 @@ def test_diverged_seeds_are_in_no_mean_and_fail_most_seeds():
     assert not beats(qdpg, td3)
     assert beats(np.array([-30.0, -40.0, np.nan]), td3)  # 2 of 3
     assert per_seed(qdpg) == "-35.0 (seeds: -30.0, diverged, -40.0, diverged)"
-    assert mean_text(qdpg) == "-35.0 ± 5.0 (2 of 4 seeds diverged)"
-    assert mean_text(np.array([np.nan, np.nan])) == "diverged"
+    assert mean_sd(qdpg) == "-35.0 ± 5.0 (2 seeds), 2 diverged"
+    assert mean_sd(np.array([np.nan, np.nan])) == "diverged"

@@ -74,3 +74,18 @@ def test_a_page_opens_with_its_claims_and_at_tiny_a_warning(runs):
     assert ":class: note" in small and "not evidence" not in small and "no run record" in small
     status = runner.status_table("tiny")
     assert "ran at scale tiny" in status and f"| NS reaches | {scorecard.RAN}<br>" in status
+
+
+def test_a_page_prints_verdicts_only_at_a_scale_that_is_evidence():
+    import pandas as pd
+
+    checks = pd.DataFrame({"claim": ["a", "b"], "holds": [True, False]})
+    small = scorecard.verdict_column(checks, "small")
+    assert list(small["verdict"]) == [HOLDS, FAILS] and "holds" not in small
+    tiny = scorecard.verdict_column(checks, "tiny")
+    assert set(tiny["verdict"]) == {scorecard.RAN.replace("`", "")}  # no ✓ / ✗ from noise
+    assert scorecard.verdict("cannot show", "small").startswith("—")
+    assert scorecard.held_text(1, 2, "small") == "**1/2 claims hold at scale `small`**"
+    assert "no verdict" in scorecard.held_text(1, 2, "tiny") and "1/2" not in (
+        scorecard.held_text(1, 2, "tiny")
+    )

@@ -44,6 +44,31 @@ def status_text(claim: dict[str, str], scale: str, summary: dict | None = None) 
     return SYMBOL[claim["status"]] + (STALE if (summary or {}).get("stale") else "")
 
 
+def verdict(ok: bool | str, scale: str) -> str:
+    """A check's verdict where a page prints one, in its text or a table: ✓ holds, ✗ fails
+    or — cannot show (``ok``: a bool or a status); at ``tiny``, "ran": no verdict."""
+    if scale in verdicts.NO_VERDICT:
+        return RAN
+    return SYMBOL[ok if isinstance(ok, str) else (HOLDS if ok else FAILS)]
+
+
+def verdict_column(table, scale: str, column: str = "holds"):
+    """``table`` (a DataFrame of checks) with its ``column`` of bools or statuses as a
+    "verdict" column of ``verdict`` texts."""
+    out = table.copy()
+    texts = [verdict(v if isinstance(v, str) else bool(v), scale) for v in out[column]]
+    out[column] = [t.replace("`", "") for t in texts]  # a table's cell is no Markdown
+    return out.rename(columns={column: "verdict"})
+
+
+def held_text(held: int, total: int, scale: str, noun: str = "claims") -> str:
+    """The sentence over a page's table of checks: "**3/4 claims hold at scale `small`**",
+    at ``tiny`` that they ran with no verdict."""
+    if scale in verdicts.NO_VERDICT:
+        return f"**{total} {noun} checked at scale `{scale}`**, as code paths: no verdict"
+    return f"**{held}/{total} {noun} hold at scale `{scale}`**"
+
+
 def summaries(scales: tuple[str, ...] = SCALES) -> dict[str, dict[str, dict | None]]:
     """``{scale: {notebook: summary or None}}`` for every registered chapter: the run on
     this machine, else the published verdicts (``verdicts.as_summary``), else ``None``."""

@@ -32,6 +32,7 @@ from qdnb.core.claims import finite_mean
 from qdnb.core.config import config_hash
 from qdnb.core.evaluation import Algorithm
 from qdnb.core.io import load_arrays, load_summary, save_arrays
+from qdnb.core.names import mean_sd, number_text, seeds_text
 from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
@@ -478,7 +479,7 @@ class MethodResult:
     def performance_text(self, digits: int = 1) -> str:
         """``mean ± std`` of the final performance over the seeds that stayed finite, and
         how many diverged."""
-        return mean_text(self.final_performance, digits, self.num_diverged)
+        return mean_sd(self.final_performance, digits, self.num_diverged)
 
     @property
     def num_diverged(self) -> int:
@@ -690,20 +691,6 @@ def steps_to_exit(result: MethodResult) -> np.ndarray:
 # ----- the chapter's claims and summary -----
 
 
-def mean_text(values: np.ndarray, digits: int = 1, diverged: int | None = None) -> str:
-    """``mean ± std`` over the finite seeds (``± std`` only with several), and how many
-    diverged (``diverged``, or the NaN entries)."""
-    v = np.asarray(values, float)
-    finite = v[np.isfinite(v)]
-    lost = int(np.sum(np.isnan(v))) if diverged is None else diverged
-    if not finite.size:
-        return "diverged" if lost else "n/a"
-    text = f"{finite.mean():.{digits}f}" + (
-        f" ± {finite.std():.{digits}f}" if finite.size > 1 else ""
-    )
-    return text + (f" ({lost} of {len(v)} seeds diverged)" if lost else "")
-
-
 def beats(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether the per-seed values ``a`` beat ``b``: on the mean over seeds, and on
     most of the seeds of ``a`` (each against the mean of ``b``).  Diverged seeds (NaN)
@@ -737,7 +724,7 @@ def claims(results_by_env: dict[str, EnvironmentResult]) -> list[tuple[str, bool
         (
             "QD-PG reaches the exit zone (most seeds)",
             bool(reached.mean() > 0.5),
-            f"{reached.sum()} of {len(reached)} seeds",
+            f"{reached.sum()} of {seeds_text(len(reached))}",
         ),
         (
             "QD-PG beats TD3 on final performance (mean and most seeds)",
@@ -1120,7 +1107,7 @@ def _numbers(rows: list[dict], key: str) -> np.ndarray:
 
 def _steps(values: list) -> str:
     hits = [v for v in values if v is not None]
-    return ", ".join(f"{v:.2g}" for v in hits) or "never"
+    return ", ".join(number_text(v) for v in hits) or "never"
 
 
 def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
@@ -1138,7 +1125,7 @@ def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
                 "reading": label,
                 "seeds in the exit zone": f"{sum(r['reached_exit'] for r in mine)}/{len(mine)}",
                 "steps to the exit zone": _steps([r["steps_to_exit"] for r in mine]),
-                "final performance": mean_text(_numbers(mine, "final_performance")),
+                "final performance": mean_sd(_numbers(mine, "final_performance")),
                 "episodes ending above the upper wall": (
                     f"{np.mean([r['share_above_upper_wall'] for r in mine]):.1%}"
                 ),
@@ -1157,7 +1144,7 @@ def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
                 "reading": "QDax 0.5.0's own QD-PG (its example's settings)",
                 "seeds in the exit zone": f"{sum(r['reached_exit'] for r in p)}/{len(p)}",
                 "steps to the exit zone": _steps([r["steps_to_exit"] for r in p]),
-                "final performance": mean_text(np.array([r["final_performance"] for r in p])),
+                "final performance": mean_sd(np.array([r["final_performance"] for r in p])),
                 "episodes ending above the upper wall": "",
                 "coverage": f"{np.mean([r['coverage'] for r in p]):.2f} (of its 1,024 cells)",
                 "diverged (iteration)": "",
@@ -1228,7 +1215,7 @@ def published_rows(published: dict) -> list[dict[str, Any]]:
                     f"{sum(s['steps_to_exit'] is not None for s in seeds)}/{len(seeds)}"
                 ),
                 "steps to the exit zone": _steps([s["steps_to_exit"] for s in seeds]),
-                "final performance": mean_text(_numbers(seeds, "final_performance")),
+                "final performance": mean_sd(_numbers(seeds, "final_performance")),
                 "coverage": f"{finite_mean(_numbers(seeds, 'coverage')):.2f}",
                 "s per iteration": f"{m['seconds_per_iteration']:.3f}",
                 "wall time (min)": f"{m['wall_seconds'] / 60:.1f}",

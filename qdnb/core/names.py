@@ -1,8 +1,12 @@
 """The thesis's names for the book's environments, wherever a reader sees one: titles,
 tables, legends, claims; ``markdown_words`` puts a machine-written line in a reader's
-words."""
+words; ``number_text``, ``seeds_text`` and ``mean_sd`` write numbers, counts and means
+over seeds as the book does."""
 
+import math
 import re
+
+import numpy as np
 
 ENV_LABELS = {
     "pointmaze": "Point-Maze",
@@ -47,3 +51,52 @@ def markdown_words(text: str) -> str:
         part = _ENV_WORD.sub(lambda m: ENV_LABELS[m.group(1)], part)
         out.append(IDENTIFIER.sub(lambda m: f"`{m.group(0)}`", part))
     return "".join(out)
+
+
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def number_text(value: float, digits: int = 2) -> str:
+    """A number as the book writes it in text and tables: ``digits`` significant
+    figures, thousands separators up to 99,999, powers of ten beyond (and below 10⁻⁴)
+    as the thesis prints them, 1.6·10⁶ and 10⁸; ∞ for never."""
+    x = float(value)
+    if math.isnan(x):
+        return "—"
+    if math.isinf(x):
+        return "∞" if x > 0 else "−∞"
+    text = f"{x:.{digits}g}"
+    if "e" not in text:
+        whole = float(text)
+        if abs(whole) >= 1000 and whole == int(whole):
+            return f"{int(whole):,}"
+        return text
+    mantissa, exponent = text.split("e")
+    e = int(exponent)
+    if -4 < e < 5:  # 1.6e+04 -> 16,000, -1.3e+02 -> -130
+        rounded = float(text)
+        return f"{int(rounded):,}" if rounded == int(rounded) else f"{rounded:g}"
+    power = f"10{str(e).translate(_SUPERSCRIPT)}"
+    return power if float(mantissa) == 1 else f"{mantissa}·{power}"
+
+
+def seeds_text(n: int, noun: str = "seed") -> str:
+    """``n`` seeds, in words: "1 seed", "4 seeds" (never "seed(s)")."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
+def mean_sd(values, digits: int = 1, diverged: int | None = None) -> str:
+    """A mean over seeds as the book writes it: ``mean ± sd (n seeds)``; one seed is its
+    value and "(1 seed)", never "± 0.0"; seeds that diverged (NaN, or ``diverged`` of
+    them when given) are left out and counted."""
+    v = np.asarray(values, float).ravel()
+    finite = v[np.isfinite(v)]
+    lost = v.size - finite.size if diverged is None else diverged
+    if not finite.size:
+        return "diverged" if lost else "—"
+    text = f"{finite.mean():.{digits}f}"
+    if finite.size > 1:
+        text += f" ± {finite.std():.{digits}f} ({finite.size} seeds)"
+    else:
+        text += " (1 seed)"
+    return text + (f", {lost} diverged" if lost else "")

@@ -104,6 +104,22 @@ def _panel_name(ax: plt.Axes, i: int) -> str:
     return f"panel {i + 1}" + (f" ({title})" if title else "")
 
 
+# an axis counting these (its label names one) has integer ticks: no "iteration 0.5"
+COUNTS = ("step", "iteration", "epoch", "generation", "evaluation")
+
+
+def integer_axes(fig: plt.Figure) -> None:
+    """Integer ticks on every linear axis of ``fig`` that counts steps, iterations,
+    epochs, generations or evaluations (its label says which), colour bars included."""
+    from matplotlib.ticker import MaxNLocator
+
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            label = axis.get_label().get_text().lower()
+            if axis.get_scale() == "linear" and any(word in label for word in COUNTS):
+                axis.set_major_locator(MaxNLocator(integer=True))
+
+
 def degeneracies(fig: plt.Figure) -> list[str]:
     """What a reader would see as broken in ``fig``: a uniform image (its values span
     less than ``FLAT`` of its colour scale), a panel whose data are all NaN, a colour
@@ -166,7 +182,8 @@ def show(
     beneath it and numbered by the book), its ``alt`` text (what the figure shows, for
     a reader who cannot see it) and ``name``, a label other text can refer to.  In
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
-    shrunk into the column, its fonts would fall below 9 points.  A degenerate figure
+    shrunk into the column, its fonts would fall below 9 points.  Axes that count
+    (``integer_axes``) get integer ticks.  A degenerate figure
     (``degeneracies``) is never shown silently: its caption says what is degenerate and
     ``note`` why (without a note the book's build refuses the page)."""
     import base64
@@ -184,6 +201,7 @@ def show(
     if not caption.strip() or not alt.strip():
         plt.close(fig)
         raise ValueError("a book figure needs a caption and an alt text")
+    integer_axes(fig)
     broken = degeneracies(fig)
     if broken:
         caption = f"{caption.rstrip()} **{DEGENERATE}** {'; '.join(broken)}. " + (

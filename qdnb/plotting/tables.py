@@ -9,7 +9,7 @@ config's field, ``num_critic_steps``) in code type, as a reader would type it.  
 fits the page's column; ``styled(df, dump=True)`` marks one that is a data dump and may
 scroll sideways (the browser check refuses any other that does).  ``use_book_tables()``
 makes ``styled`` the HTML of every DataFrame a notebook displays; the text form (a
-terminal, a test) is pandas' own.  ``mean_sd`` writes a mean over seeds as the book does.
+terminal, a test) is pandas' own.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from qdnb.core.names import IDENTIFIER, READER_NAMES
+from qdnb.core.names import IDENTIFIER, READER_NAMES, number_text
 
 MISSING = "—"
 DIGITS = 4
@@ -45,11 +45,7 @@ def cell_text(value: Any, digits: int = DIGITS) -> str:
             return MISSING
         if math.isinf(x):
             return "∞" if x > 0 else "−∞"
-        text = f"{x:.{digits}g}"
-        if "e" in text:  # 1.234e+07 -> 1.234e7
-            mantissa, exponent = text.split("e")
-            text = f"{mantissa}e{int(exponent)}"
-        return text
+        return number_text(x, digits)
     if isinstance(value, dict):
         return ", ".join(f"{k}: {cell_text(v, digits)}" for k, v in value.items()) or MISSING
     if isinstance(value, (list, tuple, np.ndarray)):
@@ -78,22 +74,6 @@ def cell_html(value: Any, digits: int = DIGITS) -> str:
     if isinstance(value, str):
         return _identifier_html(cell_text(value, digits))
     return html.escape(cell_text(value, digits))
-
-
-def mean_sd(values: Any, digits: int = 1) -> str:
-    """A mean over seeds as the book writes it: ``mean ± sd (n seeds)``; one seed is its
-    value and "(1 seed)", never "± 0.0"; NaN seeds (diverged) are left out and counted."""
-    v = np.asarray(values, float).ravel()
-    finite = v[np.isfinite(v)]
-    lost = v.size - finite.size
-    if not finite.size:
-        return "diverged" if lost else MISSING
-    text = f"{finite.mean():.{digits}f}"
-    if finite.size > 1:
-        text += f" ± {finite.std():.{digits}f} ({finite.size} seeds)"
-    else:
-        text += " (1 seed)"
-    return text + (f", {lost} diverged" if lost else "")
 
 
 def _has_default_index(df: pd.DataFrame) -> bool:
