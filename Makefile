@@ -28,10 +28,10 @@ book: venv
 ## (pytest-xdist, a test file per worker at a time): the notebooks in three groups, each in
 ## order on one worker (tests/notebook_runs.py), the unit test files filling in behind them;
 ## the primer also runs in place from a fresh kernel, as a reader runs it (nbmake: no
-## papermill, no runner).
+## papermill, no runner). The 25 slowest tests are listed at the end (CI has a 30-minute aim).
 test: venv lint
 	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder tests \
-	    --nbmake --nbmake-timeout=1200 notebooks/ch2_primer.ipynb
+	    --nbmake --nbmake-timeout=1200 notebooks/ch2_primer.ipynb --durations=25
 
 lint: venv
 	$(BIN)/python -m ruff check .

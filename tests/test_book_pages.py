@@ -13,8 +13,9 @@ from notebook_runs import write_notebook
 matplotlib.use("Agg")
 
 from qdnb.book import runner  # noqa: E402
+from qdnb.core.names import mean_sd  # noqa: E402
 from qdnb.plotting import COLUMN_INCHES, FIGURE_KEY, show  # noqa: E402
-from qdnb.plotting.tables import cell_html, cell_text, mean_sd, styled  # noqa: E402
+from qdnb.plotting.tables import cell_html, cell_text, styled  # noqa: E402
 
 
 def test_a_table_has_no_default_index_rounds_and_writes_everything_out():
@@ -94,10 +95,42 @@ def test_the_sidebar_groups_the_pages_by_the_thesiss_chapters():
         "About this book",
     ]
     ch3 = [c["file"] for c in toc["parts"][1]["chapters"]]
-    assert ch3 == ["chapters/ch3_qdpg", "chapters/ch3_baselines", "chapters/ch3_evolution"]
+    assert ch3 == [
+        "chapters/ch3_qdpg",
+        "chapters/ch3_baselines",
+        "chapters/ch3_evolution",
+        "chapters/ch3_how",  # each thesis chapter closes with how it was run
+    ]
     files = [c["file"] for p in toc["parts"] for c in p["chapters"]]
     assert files[-3:] == ["reproducing", "paper_scale", "references"]
-    assert len(files) == len(registry.CHAPTERS) + 3
+    assert len(files) == len(registry.CHAPTERS) + len(registry.APPENDICES) + 3
+
+
+def test_cells_tagged_for_the_appendix_leave_the_page_for_their_chapters_appendix():
+    from qdnb.book import appendix, registry
+
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [
+        nbformat.v4.new_markdown_cell("# Title\n\nThe story."),
+        nbformat.v4.new_markdown_cell(
+            "## Budget rule\n\n### Detail", metadata={"tags": ["appendix"]}
+        ),
+        nbformat.v4.new_code_cell("x = 1", metadata={"tags": ["hide-input", "appendix"]}),
+        nbformat.v4.new_markdown_cell("## Results"),
+    ]
+    moved = appendix.split(nb)
+    assert [c.source for c in nb.cells] == ["# Title\n\nThe story.", "## Results"]
+    assert [c.source for c in moved] == ["## Budget rule\n\n### Detail", "x = 1"]
+    ch3 = registry.chapter("ch3_qdpg")
+    page = appendix.page(ch3.part, [(ch3, moved)], "tiny", nb.metadata)
+    title, section, heading, code = page.cells
+    assert title.source.startswith("# How Chapter 3 was run") and "`tiny`" in title.source
+    assert section.source.startswith(f"## {ch3.title}") and "(ch3_qdpg)" in section.source
+    # the moved headings sit under their page's section
+    assert heading.source == "### Budget rule\n\n#### Detail" and code.source == "x = 1"
+    again = nbformat.v4.new_markdown_cell("#### Deep\n\ntext", metadata={"tags": ["appendix"]})
+    assert appendix._demoted(again).source == "### Deep\n\ntext"
+    assert "(ch3_how)" in appendix.link(ch3)
 
 
 def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
@@ -144,16 +177,48 @@ def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
     assert shown[-1]["metadata"][FIGURE_KEY]["caption"] == "A curve."
 
 
-def test_numbers_print_to_four_significant_digits():
+def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
+    from qdnb.core.names import number_text, seeds_text
+
     assert [cell_text(v) for v in (0.123456, 123456.7, 8.4e7, 2e-5, 12, 120_000)] == [
         "0.1235",
-        "1.235e5",
-        "8.4e7",
-        "2e-5",
+        "1.235·10⁵",
+        "8.4·10⁷",
+        "2·10⁻⁵",
         "12",
         "120,000",
     ]
     assert cell_text(np.inf) == "∞" and cell_text([1.0, 2.5]) == "1, 2.5"
+    # in text, two significant figures: separators to 99,999, then powers of ten as the thesis
+    # prints them; never "1.6e+04" or "inf"
+    assert [number_text(v) for v in (16_384.0, 8_000, 1e6, 1.6e6, 3e10, -126.04, 0.0035)] == [
+        "16,000",
+        "8,000",
+        "10⁶",
+        "1.6·10⁶",
+        "3·10¹⁰",
+        "-130",
+        "0.0035",
+    ]
+    assert number_text(float("inf")) == "∞" and number_text(float("nan")) == "—"
+    assert [seeds_text(1), seeds_text(4), seeds_text(2, "goal")] == ["1 seed", "4 seeds", "2 goals"]
+
+
+def test_axes_that_count_iterations_or_epochs_have_integer_ticks():
+    import matplotlib.pyplot as plt
+
+    from qdnb.plotting import integer_axes
+
+    fig, ax = plt.subplots(figsize=(3, 2))
+    bar = fig.colorbar(ax.scatter([0, 1], [0, 1], c=[0, 2]), ax=ax, label="iteration")
+    ax.plot([0, 3], [0, 1])
+    ax.set(xlabel="epoch", ylabel="distance")
+    integer_axes(fig)
+    fig.canvas.draw()
+    assert all(float(t).is_integer() for t in bar.ax.get_yticks())  # not 0.00, 0.25, ...
+    assert all(float(t).is_integer() for t in ax.get_xticks())
+    assert not all(float(t).is_integer() for t in ax.get_yticks())  # a distance is no count
+    plt.close(fig)
 
 
 def test_a_figure_wider_than_the_column_or_without_caption_is_refused():

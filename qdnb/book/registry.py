@@ -87,6 +87,20 @@ CHAPTERS: tuple[Chapter, ...] = (
 )
 
 
+# each thesis chapter's appendix page (``qdnb.book.appendix``): its file in the book and title
+APPENDICES = {
+    BACKGROUND: ("ch2_how", "How Chapters 1–2 were run"),
+    QDPG: ("ch3_how", "How Chapter 3 was run"),
+    QDT: ("ch4_how", "How Chapter 4 was run"),
+    FLT: ("ch5_how", "How Chapter 5 was run"),
+}
+
+
+def appendix(part: str) -> tuple[str, str]:
+    """The file stem and title of the appendix page of the thesis's chapter ``part``."""
+    return APPENDICES[part]
+
+
 def names() -> list[str]:
     return [c.name for c in CHAPTERS]
 
@@ -106,8 +120,8 @@ def config(name: str, scale: str):
 
 def toc() -> str:
     """The book's ``_toc.yml``: the intro, the pages grouped by the thesis's chapter
-    (``Chapter.part``), then how to reproduce the book, what the ``paper`` scale needs
-    and the references."""
+    (``Chapter.part``), each group closed by its appendix page, then how to reproduce
+    the book, what the ``paper`` scale needs and the references."""
     lines = [
         "# Written by `python -m qdnb book` from qdnb.book.registry.CHAPTERS.",
         "format: jb-book",
@@ -117,6 +131,8 @@ def toc() -> str:
     parts: dict[str, list[str]] = {}
     for c in CHAPTERS:
         parts.setdefault(c.part, []).append(f"chapters/{c.name}")
+    for part, files in parts.items():
+        files.append(f"chapters/{appendix(part)[0]}")
     parts["About this book"] = ["reproducing", "paper_scale", "references"]
     for caption, files in parts.items():
         lines += [f'  - caption: "{caption}"', "    chapters:"]

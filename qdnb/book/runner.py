@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Iterator
 
-from qdnb.book import pagecheck, publish, registry, scorecard
+from qdnb.book import appendix, pagecheck, publish, registry, scorecard
 from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
 from qdnb.core import paths, sharding
 from qdnb.core.config import SCALES, check_scale
@@ -502,15 +502,18 @@ def book_figures(nb) -> None:
     nb.cells = cells
 
 
-def copy_page(name: str, scale: str, dest: Path) -> None:
+def copy_page(name: str, scale: str, dest: Path) -> list:
     """The executed notebook as the book's page: after its title, the "at a glance"
     box (``scorecard.chapter_box``: its claims at this scale, the scale's meaning, the
-    run's seed, devices and time) and, for an imported run, ``publish.banner``."""
+    run's seed, devices and time) and, for an imported run, ``publish.banner``; its
+    cells tagged for the appendix are taken out (and returned, for ``appendix.page``),
+    a link to the appendix in their place after the introduction."""
     import nbformat
 
     source = executed_path(name, scale)
     record = publish.imported(scale, name)
     nb = nbformat.read(source, as_version=4)
+    moved = appendix.split(nb)
     box = scorecard.chapter_box(name, scale, load_summary(scale, name))
     opening = [nbformat.v4.new_markdown_cell(box)]
     if record is not None:
@@ -520,9 +523,30 @@ def copy_page(name: str, scale: str, dest: Path) -> None:
     if title.startswith("# ") and introduction.strip():
         nb.cells[0].source = title
         opening.append(nbformat.v4.new_markdown_cell(introduction.strip("\n")))
+    if moved:
+        opening.append(nbformat.v4.new_markdown_cell(appendix.link(registry.chapter(name))))
     nb.cells[1:1] = opening
     book_figures(nb)
     atomic_write_bytes(dest, nbformat.writes(nb).encode())
+    return moved
+
+
+def write_appendices(moved: dict[str, list], scale: str, chapters: Path) -> None:
+    """Each thesis chapter's appendix page (``appendix.page``) in ``chapters``, from the
+    cells its pages moved out (``moved``: by notebook name)."""
+    import nbformat
+
+    metadata = nbformat.read(registry.CHAPTERS[0].notebook, as_version=4).metadata
+    parts: dict[str, list] = {}
+    for c in registry.CHAPTERS:
+        parts.setdefault(c.part, [])
+        if moved.get(c.name):
+            parts[c.part].append((c, moved[c.name]))
+    for part, sections in parts.items():
+        nb = appendix.page(part, sections, scale, metadata)
+        book_figures(nb)
+        dest = chapters / f"{registry.appendix(part)[0]}.ipynb"
+        atomic_write_bytes(dest, nbformat.writes(nb).encode())
 
 
 def build_book(
@@ -556,8 +580,8 @@ def build_book(
     chapters = paths.BOOK / "chapters"
     shutil.rmtree(chapters, ignore_errors=True)
     chapters.mkdir(parents=True)
-    for name in names:
-        copy_page(name, scale, chapters / f"{name}.ipynb")
+    moved = {name: copy_page(name, scale, chapters / f"{name}.ipynb") for name in names}
+    write_appendices(moved, scale, chapters)
     (paths.BOOK / "_status.md").write_text(status_table(scale))
     (paths.BOOK / "_paper_scale.md").write_text(paper_scale_page())
     (paths.BOOK / "_toc.yml").write_text(registry.toc())
@@ -567,6 +591,7 @@ def build_book(
         str(exe) if exe.exists() else "jupyter-book",
         "build",
         str(paths.BOOK),
+        "--all",  # a fresh environment: a label that moved between pages is no duplicate
         "--keep-going",
         "-W",
     ]
