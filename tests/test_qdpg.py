@@ -848,9 +848,9 @@ def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
     rows = {r["reading"]: r for r in chapter.reading_rows(ab)}
     assert list(rows) == [chapter.READINGS[v] for v in ("thesis-adam", "sum", "thesis-sgd")]
     assert rows[chapter.READINGS["sum"]]["seeds in the exit zone"] == "3/4"
-    assert rows[chapter.READINGS["sum"]]["steps to the exit zone"] == "3.7e+05, 5e+05, 8e+05"
+    assert rows[chapter.READINGS["sum"]]["steps to the exit zone"] == "3.7·10⁵, 5·10⁵, 8·10⁵"
     sgd = rows[chapter.READINGS["thesis-sgd"]]
-    assert sgd["final performance"] == "-120.0 (1 of 2 seeds diverged)"  # not averaged in
+    assert sgd["final performance"] == "-120.0 (1 seed), 1 diverged"  # not averaged in
     assert sgd["diverged (iteration)"] == "250"
     assert chapter.reading_exits(ab, "sum") and not chapter.reading_exits(ab, "thesis-adam")
     # fewer than 4 seeds call nothing; 2 of 4 is one seed from the verdict: two more seeds,
@@ -878,7 +878,7 @@ def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
     ], "seconds_per_iteration": 0.2, "wall_seconds": 300.0}}}  # fmt: skip
     (p,) = chapter.published_rows(published)
     assert p["seeds in the exit zone"] == "1/2"
-    assert p["final performance"] == "-24.0 (1 of 2 seeds diverged)"
+    assert p["final performance"] == "-24.0 (1 seed), 1 diverged"
     assert p["coverage"] == "0.90"  # the diverged seed's None is in no mean
     published["methods"]["QD-PG"]["seeds"][0]["coverage"] = 0.0  # a finite zero is a value
     assert chapter.published_rows(published)[0]["coverage"] == "0.00"
