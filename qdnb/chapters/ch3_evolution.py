@@ -37,6 +37,7 @@ from qdnb.chapters.ch3_qdpg import (
 from qdnb.core import claims as claim_records
 from qdnb.core import dryrun
 from qdnb.core.claims import finite_mean
+from qdnb.core.names import number_text
 
 EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
 # this page's methods: their builders in the chapter's method registry
@@ -198,8 +199,8 @@ def sample_efficiency(result: Result, env_name: str = "pointmaze") -> tuple[str,
         np.isfinite(mean_steps(qd)) and mean_steps(qd) <= target and np.mean(qd <= target) > 0.5
     )
     numbers = (
-        f"QD-PG {', '.join(f'{v:.3g}' for v in qd)} steps; fastest ES: {fastest}, "
-        f"{', '.join(f'{v:.3g}' for v in steps[fastest])} (inf: never reached)"
+        f"QD-PG {', '.join(number_text(v, 3) for v in qd)} steps; fastest ES: {fastest}, "
+        f"{', '.join(number_text(v, 3) for v in steps[fastest])} (∞: never reached)"
     )
     claim = f"QD-PG reaches the goal with {FACTOR}x fewer steps than the fastest ES method"
     return claim, holds, numbers
