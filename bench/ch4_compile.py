@@ -12,9 +12,9 @@ XLA settings, each in a fresh process:
 - ``opt0``: the same and ``--xla_backend_optimization_level=0`` (what the `tiny` kernels use),
   which compiles faster and may run slower.
 
-The rule, written before the runs: the page takes ``opt0`` if its projected notebook time at
-10 evaluations (compile seconds + 10 x seconds an evaluation, summed over the methods and
-scaled from the measured seeds and robot to the page's) is at least 10 % below ``page``'s.
+The rule, written before the runs: the page takes ``opt0`` if its projected time at 10
+evaluations (each method's fixed seconds + 10 x its seconds an evaluation, on the measured
+robot and seed, summed over the methods) is at least 10 % below ``page``'s.
 
     python bench/ch4_compile.py [--env ant_omni] [--iterations 1 3]
 

@@ -118,6 +118,14 @@ def config(name: str, scale: str):
     return chapter(name).config(scale)
 
 
+def parts() -> dict[str, list[Chapter]]:
+    """The pages grouped by the thesis's chapter (``Chapter.part``), in reading order."""
+    grouped: dict[str, list[Chapter]] = {}
+    for c in CHAPTERS:
+        grouped.setdefault(c.part, []).append(c)
+    return grouped
+
+
 def toc() -> str:
     """The book's ``_toc.yml``: the intro, the pages grouped by the thesis's chapter
     (``Chapter.part``), each group closed by its appendix page, then how to reproduce
@@ -128,13 +136,12 @@ def toc() -> str:
         "root: intro",
         "parts:",
     ]
-    parts: dict[str, list[str]] = {}
-    for c in CHAPTERS:
-        parts.setdefault(c.part, []).append(f"chapters/{c.name}")
-    for part, files in parts.items():
-        files.append(f"chapters/{appendix(part)[0]}")
-    parts["About this book"] = ["reproducing", "paper_scale", "references"]
-    for caption, files in parts.items():
+    groups = {
+        part: [f"chapters/{c.name}" for c in pages] + [f"chapters/{appendix(part)[0]}"]
+        for part, pages in parts().items()
+    }
+    groups["About this book"] = ["reproducing", "paper_scale", "references"]
+    for caption, files in groups.items():
         lines += [f'  - caption: "{caption}"', "    chapters:"]
         lines += [f"      - file: {f}" for f in files]
     return "\n".join(lines) + "\n"

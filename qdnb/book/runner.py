@@ -537,12 +537,8 @@ def write_appendices(moved: dict[str, list], scale: str, chapters: Path) -> None
     import nbformat
 
     metadata = nbformat.read(registry.CHAPTERS[0].notebook, as_version=4).metadata
-    parts: dict[str, list] = {}
-    for c in registry.CHAPTERS:
-        parts.setdefault(c.part, [])
-        if moved.get(c.name):
-            parts[c.part].append((c, moved[c.name]))
-    for part, sections in parts.items():
+    for part, pages in registry.parts().items():
+        sections = [(c, moved[c.name]) for c in pages if moved.get(c.name)]
         nb = appendix.page(part, sections, scale, metadata)
         book_figures(nb)
         dest = chapters / f"{registry.appendix(part)[0]}.ipynb"

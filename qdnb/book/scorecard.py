@@ -39,9 +39,8 @@ def status_text(claim: dict[str, str], scale: str, summary: dict | None = None) 
     """A claim's status as a reader sees it: ✓ / ✗ / — at a scale that is evidence,
     marked stale when its published run no longer describes the code; "ran" at
     ``tiny``."""
-    if scale in verdicts.NO_VERDICT:
-        return RAN
-    return SYMBOL[claim["status"]] + (STALE if (summary or {}).get("stale") else "")
+    stale = scale not in verdicts.NO_VERDICT and (summary or {}).get("stale")
+    return verdict(claim["status"], scale) + (STALE if stale else "")
 
 
 def verdict(ok: bool | str, scale: str) -> str:

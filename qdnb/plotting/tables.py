@@ -15,7 +15,6 @@ terminal, a test) is pandas' own.
 from __future__ import annotations
 
 import html
-import math
 import numbers
 from typing import Any
 
@@ -39,13 +38,8 @@ def cell_text(value: Any, digits: int = DIGITS) -> str:
         return "✓" if value else "✗"
     if isinstance(value, numbers.Integral):
         return f"{int(value):,}" if abs(int(value)) >= 10_000 else str(int(value))
-    if isinstance(value, numbers.Real):
-        x = float(value)
-        if math.isnan(x):
-            return MISSING
-        if math.isinf(x):
-            return "∞" if x > 0 else "−∞"
-        return number_text(x, digits)
+    if isinstance(value, numbers.Real):  # NaN as MISSING, ∞ for an infinity
+        return number_text(value, digits)
     if isinstance(value, dict):
         return ", ".join(f"{k}: {cell_text(v, digits)}" for k, v in value.items()) or MISSING
     if isinstance(value, (list, tuple, np.ndarray)):
