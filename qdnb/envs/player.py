@@ -7,7 +7,6 @@ import itertools
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from qdnb.core import dryrun
@@ -49,10 +48,15 @@ class Player:
         self._play = jax.jit(play)
 
     def play(self, genotypes: Any, keys: jax.Array) -> Evaluation:
+        """Each policy of ``genotypes`` over the episode started by the same row of
+        ``keys``.  Padding, slicing and stitching the chunks happen on the host: the
+        number of episodes changes from call to call, and device arrays of a new shape
+        would each compile their own small XLA programs (hundreds per repertoire)."""
         n = keys.shape[0]
         pad = (-n) % self.chunk
         padded = jax.tree.map(
-            lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), (genotypes, keys)
+            lambda x: np.concatenate([x, np.repeat(x[:1], pad, axis=0)]),
+            jax.device_get((genotypes, keys)),
         )
         name, count = f"{self.name} ({self.chunk} per chunk)", (n + pad) // self.chunk
         # a dry run that timed this compiled simulation on an earlier call counts this
@@ -64,37 +68,42 @@ class Player:
             chunks = dryrun.steps(name, range(0, n + pad, self.chunk), unit="chunk")
             outs = []
             for i in chunks:
-                outs.append(self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded)))
-                chunks.step_done(outs[-1])
+                part = self._play(*jax.tree.map(lambda x: x[i : i + self.chunk], padded))
+                chunks.step_done(part)
+                outs.append(jax.device_get(part))
             if chunks.dry:
                 dryrun.remember(self._program, chunks.seconds_per_step, outs[-1])
         # a dry run played the first chunks only: the others repeat them (same shapes)
         outs = [outs[j % len(outs)] for j in range(count)]
         fitness, descriptor, path = (
-            jax.tree.map(lambda *xs: jnp.concatenate(xs)[:n], *parts) for parts in zip(*outs)
+            jax.tree.map(lambda *xs: np.concatenate(xs)[:n], *parts) for parts in zip(*outs)
         )
         length = (
-            jnp.sum(path["valid"], axis=1)
+            np.sum(path["valid"], axis=1)
             if isinstance(path, dict)
-            else jnp.full((n,), path.shape[1])
+            else np.full((n,), path.shape[1])
         )
         return Evaluation(fitness=fitness, descriptor=descriptor, length=length, trajectory=path)
 
     def episodes(self, num_episodes: int, only: jax.Array | None = None):
         """``evaluate_fn(genotypes, key)``: each of the ``G`` policies over
-        ``num_episodes`` episodes from different initial states; leaves ``(G, E, ...)``.
-        With a boolean mask ``only``, the other policies are not played (zeros)."""
+        ``num_episodes`` episodes from different initial states; leaves ``(G, E, ...)``
+        (host arrays).  With a boolean mask ``only``, the other policies are not played
+        (zeros)."""
 
         def evaluate_fn(genotypes: Any, key: jax.Array) -> Evaluation:
             g = jax.tree.leaves(genotypes)[0].shape[0]
             rows = np.arange(g) if only is None else np.flatnonzero(np.asarray(only))
-            repeated = jax.tree.map(lambda x: jnp.repeat(x[rows], num_episodes, axis=0), genotypes)
-            ev = self.play(repeated, jax.random.split(key, rows.size * num_episodes))
-            full = lambda x: (
-                jnp.zeros((g, num_episodes) + x.shape[1:], x.dtype)
-                .at[rows]
-                .set(x.reshape((rows.size, num_episodes) + x.shape[1:]))
+            repeated = jax.tree.map(
+                lambda x: np.repeat(np.asarray(x)[rows], num_episodes, axis=0), genotypes
             )
+            ev = self.play(repeated, jax.random.split(key, rows.size * num_episodes))
+
+            def full(x):
+                out = np.zeros((g, num_episodes) + x.shape[1:], x.dtype)
+                out[rows] = x.reshape((rows.size, num_episodes) + x.shape[1:])
+                return out
+
             return jax.tree.map(full, ev)
 
         return evaluate_fn
