@@ -1,5 +1,7 @@
 import os
 
+import pytest
+
 # Tests run on CPU, deterministically, whatever the machine has.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # ...and compile with XLA's CPU optimisation off, as the tiny notebooks' kernels do
@@ -15,6 +17,18 @@ if "optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = " ".join(
         filter(None, [os.environ.get("XLA_FLAGS"), KERNEL_XLA_FLAGS["tiny"]])
     )
+
+
+@pytest.fixture
+def runs(tmp_path, monkeypatch):
+    """The runs and the published runs in a temporary folder: what a test writes
+    there stays out of the repository's ``data/``."""
+    from qdnb.book import publish
+    from qdnb.core import paths
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
+    return tmp_path / "runs"
 
 
 def pytest_collection_modifyitems(config, items):

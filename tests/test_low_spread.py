@@ -235,35 +235,3 @@ def test_accuracy_plays_the_nearest_stored_policy():
     )
     np.testing.assert_allclose(acc.spread, [2.0, 2.0, 2.0])
 
-
-def test_accuracy_plays_a_policy_shared_by_goals_once():
-    """Two goals nearest the same policy: it is played once, and each goal's distance
-    and spread are those of that policy's episodes measured against it."""
-    from qdnb.qd.low_spread import accuracy
-    from qdnb.qd.repertoire import insert
-
-    centroids = jnp.array([[0.0, 0.0], [10.0, 0.0]])
-    rep = init_repertoire(centroids, {"g": jnp.zeros(())})
-    rep, _ = insert(rep, {"g": jnp.array([0.0, 10.0])}, jnp.ones(2), centroids)
-    played = []
-
-    def stub(genotypes, key):  # policy g lands at (g, +-1) and (g + 1, 0)
-        del key
-        g = genotypes["g"]
-        played.append(g.shape[0])
-        desc = jnp.stack(
-            [jnp.stack([g, jnp.ones_like(g)], -1), jnp.stack([g + 1, jnp.zeros_like(g)], -1)],
-            axis=1,
-        )
-        return Evaluation(fitness=jnp.zeros((g.shape[0], 2)), descriptor=desc, length=None)
-
-    goals = jnp.array([[1.0, 0.0], [9.0, 0.0], [-2.0, 0.0]])  # goals 0 and 2 share policy 0
-    acc = accuracy(rep, goals, stub, jax.random.PRNGKey(0))
-    assert played == [2]  # two distinct policies for three goals
-    np.testing.assert_array_equal(acc.chosen, [0, 1, 0])
-    np.testing.assert_allclose(
-        acc.distance,
-        [(np.hypot(1, 1) + 0.0) / 2, (np.hypot(1, 1) + 2.0) / 2, (np.hypot(2, 1) + 3.0) / 2],
-        rtol=1e-6,
-    )
-    np.testing.assert_allclose(acc.spread, [np.hypot(1, 1)] * 3, rtol=1e-6)

@@ -3,46 +3,34 @@ files or checkpoints; a tampered, incomplete or foreign archive is refused with 
 clear error and nothing half-unpacked; an imported run's page carries its banner."""
 
 import io
-import json
 import tarfile
 
 import nbformat
 import pytest
+from finished_runs import write_run
 
 from qdnb.book import publish, runner
 from qdnb.core import paths
 
 
-@pytest.fixture
-def runs(tmp_path, monkeypatch):
-    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
-    return tmp_path / "runs"
-
-
 def fake_run(scale="tiny", name="ch2_primer", results=None):
     """A finished run as the runner leaves it, with a parameter file and checkpoints."""
-    d = paths.run_dir(scale, name)
     nb = nbformat.v4.new_notebook()
     nb.cells = [
         nbformat.v4.new_markdown_cell("# The title\n\nThe chapter's introduction."),
         nbformat.v4.new_code_cell("1 + 1"),
     ]
-    nbformat.write(nb, d / f"{name}.ipynb")
-    summary = {
-        "notebook": name,
-        "scale": scale,
-        "seed": 0,
-        "git_sha": "0123456789abcdef",
-        "device": "gpu: H100 x1",
-        "devices": {"platform": "gpu", "kind": "H100", "count": 1},
-        "xla_flags": "",
-        "wall_time_s": 141.0,
-        "config_hash": "abc",
-        "results": results or {"headline": "it ran"},
-    }
-    (d / "summary.json").write_text(json.dumps(summary))
-    (d / "execution.json").write_text(json.dumps({"status": "ok", "fingerprint": "f"}))
+    d = write_run(
+        scale,
+        name,
+        results or {"headline": "it ran"},
+        notebook=nb,
+        device="gpu: H100 x1",
+        devices={"platform": "gpu", "kind": "H100", "count": 1},
+        xla_flags="",
+        wall_time_s=141.0,
+        config_hash="abc",
+    )
     (d / "repertoire_ME.npz").write_bytes(b"parameters")
     (d / "checkpoints" / "GA").mkdir(parents=True)
     (d / "checkpoints" / "GA" / "state").write_bytes(b"state")

@@ -2,34 +2,16 @@
 
 import json
 
-import pytest
+from finished_runs import write_run
 
-from qdnb.book import publish, runner, scorecard
+from qdnb.book import runner, scorecard
 from qdnb.core import claims, paths
 
 HOLDS, FAILS, CANNOT = (scorecard.SYMBOL[k] for k in ("holds", "fails", "cannot show"))
 
 
-@pytest.fixture
-def runs(tmp_path, monkeypatch):
-    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
-    return tmp_path / "runs"
-
-
 def write_summary(scale, name, records, wall=12.0):
-    d = paths.run_dir(scale, name)
-    summary = {
-        "notebook": name,
-        "scale": scale,
-        "seed": 0,
-        "git_sha": "0123456789abcdef",
-        "device": "cpu: cpu x2 (2 CPU cores)",
-        "devices": {"platform": "cpu", "count": 2},
-        "wall_time_s": wall,
-        "results": {"headline": "h", "claims": records},
-    }
-    (d / "summary.json").write_text(json.dumps(summary))
+    write_run(scale, name, {"headline": "h", "claims": records}, wall_time_s=wall)
 
 
 def test_the_scorecard_lists_each_claim_by_scale_with_its_numbers(runs):

@@ -7,27 +7,16 @@ import shutil
 
 import nbformat
 import pytest
+from finished_runs import write_run
 
 from qdnb.book import publish, registry, scorecard, verdicts
 from qdnb.core import claims, paths
 from qdnb.core.config import config_hash
 
 
-@pytest.fixture
-def runs(tmp_path, monkeypatch):
-    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(publish, "PUBLISHED", tmp_path / "published")
-    return tmp_path / "runs"
-
-
 def finished_run(scale="small", name="ch2_primer", **changes):
     """A finished run of ``name`` at ``scale`` as this code would leave it."""
-    d = paths.run_dir(scale, name)
-    summary = {
-        "notebook": name,
-        "scale": scale,
-        "seed": 0,
-        "git_sha": "0123456789abcdef",
+    fields = {
         "device": "cpu: 2 cores",
         "wall_time_s": 612.0,
         "config_hash": config_hash(registry.config(name, scale)),
@@ -38,10 +27,7 @@ def finished_run(scale="small", name="ch2_primer", **changes):
         },
         **changes,
     }
-    nbformat.write(nbformat.v4.new_notebook(), d / f"{name}.ipynb")
-    (d / "summary.json").write_text(json.dumps(summary))
-    (d / "execution.json").write_text(json.dumps({"status": "ok"}))
-    return d
+    return write_run(scale, name, **fields)
 
 
 def test_the_code_of_a_verdict_is_what_computes_not_what_presents():

@@ -603,9 +603,10 @@ SCALES = {
         representative_episodes=6,
         ant_omni_box=2.5,
     ),
-    # small's budget, by the notebook's rule (near 15 minutes on 2 cores): 16 evaluations
-    # took 1,236 s on a quiet machine (2026-12-06; the methods' loops 922 s, 58 s an
-    # evaluation, 314 s outside them), so 10 evaluations (about 890 s)
+    # small's budget, by the notebook's rule (near 15 minutes on 2 cores): on a quiet
+    # machine 16 evaluations took 1,236 s and 10 took 1,122 s (2026-12-06), about 19 s an
+    # evaluation beside a fixed part no evaluation count removes, so it keeps 10 (the
+    # notebook's scale rule has the measurements since)
     "small": ReproducibilityConfig(
         num_seeds=3,
         num_iterations=9,

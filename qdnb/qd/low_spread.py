@@ -16,7 +16,6 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from qdnb.qd.cvt import nearest
@@ -166,17 +165,10 @@ def accuracy(
 ) -> Accuracy:
     """For each goal descriptor, play the repertoire policy whose stored
     descriptor is nearest to the goal (``evaluate_fn(genotypes, key)`` returns
-    ``(P, E)`` fitnesses and ``(P, E, d)`` descriptors for ``P`` policies) and
-    measure how far its episodes end from the goal, and their spread.
-
-    A policy nearest to several goals is played once: its ``E`` episodes are
-    measured against each of those goals.  Each goal's estimate is the same as
-    with episodes of its own (the mean over ``E`` episodes of its nearest policy);
-    a repertoire with fewer filled cells than goals plays fewer episodes."""
+    ``(G, E)`` fitnesses and ``(G, E, d)`` descriptors) and measure how far its
+    episodes end from the goal, and their spread."""
     d2 = jnp.sum((goals[:, None, :] - repertoire.descriptors[None, :, :]) ** 2, axis=-1)
     chosen = jnp.argmin(jnp.where(repertoire.filled[None, :], d2, jnp.inf), axis=1)
-    cells, policy_of_goal = np.unique(np.asarray(chosen), return_inverse=True)
-    ev = evaluate_fn(jax.tree.map(lambda x: x[cells], repertoire.genotypes), key)
-    reached = ev.descriptor[policy_of_goal.reshape(-1)]  # (G, E, d)
-    distance = jnp.mean(jnp.linalg.norm(reached - goals[:, None, :], axis=-1), axis=1)
-    return Accuracy(distance=distance, spread=jax.vmap(spread)(reached), chosen=chosen)
+    ev = evaluate_fn(jax.tree.map(lambda x: x[chosen], repertoire.genotypes), key)
+    distance = jnp.mean(jnp.linalg.norm(ev.descriptor - goals[:, None, :], axis=-1), axis=1)
+    return Accuracy(distance=distance, spread=jax.vmap(spread)(ev.descriptor), chosen=chosen)
