@@ -41,6 +41,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 RESULTS = Path(__file__).parent / "results" / "qdax_qdpg.json"
 CHECKPOINTS = Path(__file__).parent.parent / "data" / "runs" / "bench" / "qdax_qdpg"
@@ -208,10 +209,13 @@ def one_seed(seed: int, iterations: int) -> dict:
         return (repertoire, emitter_state, key), m
 
     carry = (repertoire, emitter_state, key)
+    what = {"settings": SETTINGS, "iterations": iterations, "qdax": qdax.__version__}
     state = {"history": [], "steps_to_exit": None, "seconds": [], "done": 0, "wall": 0.0}
-    saved = CHECKPOINTS / f"seed{seed}.pkl"
+    saved = checkpoint_path(seed)
     if saved.exists():
         state = pickle.loads(saved.read_bytes())
+        if state.pop("what", None) != what:
+            raise SystemExit(f"{saved} was written by another run (settings, iterations or QDax)")
         carry = restore(carry, state.pop("carry"))
         print(f"seed {seed}: resumed after iteration {state['done']}", flush=True)
     history, steps_to_exit, seconds = state["history"], state["steps_to_exit"], state["seconds"]
@@ -228,8 +232,7 @@ def one_seed(seed: int, iterations: int) -> dict:
         print(f"seed {seed} iteration {i + 1}: {m}", flush=True)
         if (i + 1) % SAVE_EVERY == 0 and i + 1 < iterations:
             state.update(done=i + 1, steps_to_exit=steps_to_exit, wall=time.perf_counter() - start)
-            save(saved, carry, state)
-    saved.unlink(missing_ok=True)
+            save(saved, carry, {**state, "what": what})
     return {
         "seed": seed,
         "reached_exit": steps_to_exit is not None,
@@ -250,10 +253,15 @@ def leaves(carry) -> list:
     """The carry's arrays on the host, typed random keys as their raw data."""
     out = []
     for leaf in jax.tree_util.tree_leaves(carry):
-        if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+        dtype = getattr(leaf, "dtype", None)
+        if dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key):
             leaf = jax.random.key_data(leaf)
         out.append(jax.device_get(leaf))
     return out
+
+
+def checkpoint_path(seed: int) -> Path:
+    return CHECKPOINTS / f"seed{seed}.pkl"
 
 
 def restore(template, saved: list):
@@ -263,10 +271,13 @@ def restore(template, saved: list):
         raise ValueError(f"checkpoint holds {len(saved)} arrays, the carry {len(fresh)}")
     out = []
     for leaf, array in zip(fresh, saved):
-        if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+        dtype = getattr(leaf, "dtype", None)  # an initial carry may hold Python numbers
+        if dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key):
             out.append(jax.random.wrap_key_data(array, impl=jax.random.key_impl(leaf)))
-        else:
-            out.append(jnp.asarray(array, dtype=leaf.dtype))
+            continue
+        if np.shape(leaf) != np.shape(array):
+            raise ValueError(f"checkpoint array of shape {np.shape(array)}, carry {np.shape(leaf)}")
+        out.append(jnp.asarray(array, dtype=dtype))
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
@@ -297,6 +308,7 @@ def main() -> None:
             date=time.strftime("%Y-%m-%d"),
         )
         args.out.write_text(json.dumps(out, indent=1) + "\n")
+        checkpoint_path(seed).unlink(missing_ok=True)  # only once the row is written
         print(f"seed {seed}: wrote {args.out}", flush=True)
 
 

@@ -234,4 +234,3 @@ def test_accuracy_plays_the_nearest_stored_policy():
         rtol=1e-6,
     )
     np.testing.assert_allclose(acc.spread, [2.0, 2.0, 2.0])
-
