@@ -178,7 +178,7 @@ def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
 
 
 def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
-    from qdnb.core.names import number_text, seeds_text
+    from qdnb.core.names import majority_text, number_text, seeds_text
 
     assert [cell_text(v) for v in (0.123456, 123456.7, 8.4e7, 2e-5, 12, 120_000)] == [
         "0.1235",
@@ -202,6 +202,8 @@ def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
     ]
     assert number_text(float("inf")) == "∞" and number_text(float("nan")) == "—"
     assert [seeds_text(1), seeds_text(4), seeds_text(2, "goal")] == ["1 seed", "4 seeds", "2 goals"]
+    assert majority_text(1) == "on its one seed"
+    assert majority_text(3) == "on the mean over 3 seeds and on most of them"
 
 
 def test_axes_that_count_iterations_or_epochs_have_integer_ticks():

@@ -88,6 +88,9 @@ def test_player_matches_evaluate_episodes_and_pads_its_chunks():
     ):  # one policy played: keys split(key, 5)
         one = rollout(env, net.apply, jax.tree.map(lambda x: x[1], params), k)
         np.testing.assert_allclose(masked.fitness[1, e], one.fitness, rtol=1e-5)
+    # a typed key plays the same episodes as the raw key it wraps
+    typed = player.episodes(5)(params, jax.random.wrap_key_data(jax.random.PRNGKey(1)))
+    np.testing.assert_array_equal(typed.fitness, ev.fitness)
 
 
 def test_repertoires_round_trip_without_pickle(tmp_path):

@@ -85,6 +85,12 @@ def seeds_text(n: int, noun: str = "seed") -> str:
     return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
+def majority_text(n: int) -> str:
+    """How a comparison over ``n`` seeds is called: "on the mean over 3 seeds and on most
+    of them", and for one seed "on its one seed" (no mean, no majority to speak of)."""
+    return "on its one seed" if n == 1 else f"on the mean over {seeds_text(n)} and on most of them"
+
+
 def mean_sd(values, digits: int = 1, diverged: int | None = None) -> str:
     """A mean over seeds as the book writes it: ``mean ± sd (n seeds)``; one seed is its
     value and "(1 seed)", never "± 0.0"; seeds that diverged (NaN, or ``diverged`` of

@@ -53,6 +53,8 @@ class Player:
         number of episodes changes from call to call, and device arrays of a new shape
         would each compile their own small XLA programs (hundreds per repertoire)."""
         n = keys.shape[0]
+        if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):  # typed keys: their data
+            keys = jax.random.key_data(keys)  # (the same stream: a typed key wraps it)
         pad = (-n) % self.chunk
         padded = jax.tree.map(
             lambda x: np.concatenate([x, np.repeat(x[:1], pad, axis=0)]),
