@@ -206,6 +206,48 @@ def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
     assert majority_text(3) == "on the mean over 3 seeds and on most of them"
 
 
+def test_legends_move_off_the_data_and_never_onto_another_panel():
+    import matplotlib.pyplot as plt
+
+    from qdnb.plotting import clear_legends, legend_overlaps
+
+    rng = np.random.default_rng(0)
+    # a curve under the legend's corner: it moves inside the panel, off the curve
+    fig, ax = plt.subplots(figsize=(4, 3))
+    x = np.linspace(0, 1, 200)
+    ax.plot(x, 0.9 + 0.1 * x, label="high")
+    ax.plot(x, x, label="rising")
+    ax.legend(loc="upper left")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    assert legend_overlaps(ax, renderer) > 0
+    clear_legends(fig)
+    fig.canvas.draw()
+    assert legend_overlaps(ax, renderer) == 0
+    plt.close(fig)
+    # a panel full of points: the legend goes below it, under its axis label
+    fig, ax = plt.subplots(figsize=(4, 3))
+    ax.scatter(rng.random(3000), rng.random(3000), s=2, label="points")
+    ax.set_xlabel("x")
+    ax.legend(loc="upper right")
+    clear_legends(fig)
+    fig.canvas.draw()
+    assert legend_overlaps(ax, renderer := fig.canvas.get_renderer()) == 0
+    assert ax.get_legend().get_window_extent(renderer).y1 < ax.xaxis.label.get_window_extent().y0
+    plt.close(fig)
+    # ... unless another panel lies there: then it stays inside, where it covers least
+    fig, axes = plt.subplots(2, 1, figsize=(4, 5))
+    for a in axes:
+        a.scatter(rng.random(3000), rng.random(3000), s=2, label="points")
+    axes[0].legend(loc="upper right")
+    clear_legends(fig)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    box = axes[0].get_legend().get_window_extent(renderer)
+    assert not box.overlaps(axes[1].get_tightbbox(renderer))
+    plt.close(fig)
+
+
 def test_axes_that_count_iterations_or_epochs_have_integer_ticks():
     import matplotlib.pyplot as plt
 

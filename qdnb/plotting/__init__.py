@@ -120,6 +120,62 @@ def integer_axes(fig: plt.Figure) -> None:
                 axis.set_major_locator(MaxNLocator(integer=True))
 
 
+def _data_points(ax: plt.Axes) -> np.ndarray:
+    """The display coordinates of what ``ax`` draws as data: its curves' vertices and
+    its scatters' points (bands and images are backgrounds a legend may sit on)."""
+    from matplotlib.collections import PathCollection
+
+    points = [line.get_transform().transform(line.get_xydata()) for line in ax.lines]
+    points += [
+        c.get_offset_transform().transform(np.asarray(c.get_offsets(), dtype=float))
+        for c in ax.collections
+        if isinstance(c, PathCollection)  # a scatter
+    ]
+    points = [p for p in points if np.size(p)]
+    if not points:
+        return np.zeros((0, 2))
+    p = np.concatenate(points)
+    return p[np.all(np.isfinite(p), axis=1)]
+
+
+def legend_overlaps(ax: plt.Axes, renderer) -> int:
+    """How many of ``ax``'s data points (``_data_points``) its legend covers."""
+    legend = ax.get_legend()
+    if legend is None:
+        return 0
+    box = legend.get_window_extent(renderer)
+    p = _data_points(ax)
+    inside = (p[:, 0] >= box.x0) & (p[:, 0] <= box.x1) & (p[:, 1] >= box.y0) & (p[:, 1] <= box.y1)
+    return int(inside.sum())
+
+
+def clear_legends(fig: plt.Figure) -> None:
+    """Keep every panel's legend off its data: a legend that covers curve vertices or
+    scatter points moves to where it covers the fewest (Matplotlib's "best" place), or,
+    when every place inside the panel covers some, below the panel, under its axis
+    label, unless another panel is there.  Figure-level legends are placed by their
+    makers, outside the panels."""
+    fig.canvas.draw()  # the legends' places, as drawn
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        if legend is None or not legend_overlaps(ax, renderer):
+            continue
+        legend.set_loc("best")
+        fig.canvas.draw()
+        if not legend_overlaps(ax, renderer):
+            continue
+        below = ax.get_tightbbox(renderer).transformed(ax.transAxes.inverted()).y0
+        legend.set_loc("upper center")
+        legend.set_bbox_to_anchor((0.5, below - 0.02), transform=ax.transAxes)
+        fig.canvas.draw()
+        box = legend.get_window_extent(renderer)
+        others = [a.get_tightbbox(renderer) for a in fig.axes if a is not ax]
+        if any(box.overlaps(other) for other in others):
+            legend.set_loc("best")  # below would cover the next panel: the least covering place
+            legend.set_bbox_to_anchor(None)
+
+
 def degeneracies(fig: plt.Figure) -> list[str]:
     """What a reader would see as broken in ``fig``: a uniform image (its values span
     less than ``FLAT`` of its colour scale), a panel whose data are all NaN, a colour
@@ -183,7 +239,8 @@ def show(
     a reader who cannot see it) and ``name``, a label other text can refer to.  In
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
     shrunk into the column, its fonts would fall below 9 points.  Axes that count
-    (``integer_axes``) get integer ticks.  A degenerate figure
+    (``integer_axes``) get integer ticks, and legends move off the data
+    (``clear_legends``).  A degenerate figure
     (``degeneracies``) is never shown silently: its caption says what is degenerate and
     ``note`` why (without a note the book's build refuses the page)."""
     import base64
@@ -202,6 +259,7 @@ def show(
         plt.close(fig)
         raise ValueError("a book figure needs a caption and an alt text")
     integer_axes(fig)
+    clear_legends(fig)
     broken = degeneracies(fig)
     if broken:
         caption = f"{caption.rstrip()} **{DEGENERATE}** {'; '.join(broken)}. " + (
