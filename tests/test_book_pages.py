@@ -209,7 +209,7 @@ def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
 def test_legends_move_off_the_data_and_never_onto_another_panel():
     import matplotlib.pyplot as plt
 
-    from qdnb.plotting import clear_legends, legend_overlaps
+    from qdnb.plotting import clear_legends, legend_overlaps, panel_grid
 
     rng = np.random.default_rng(0)
     # a curve under the legend's corner: it moves inside the panel, off the curve
@@ -235,16 +235,19 @@ def test_legends_move_off_the_data_and_never_onto_another_panel():
     assert legend_overlaps(ax, renderer := fig.canvas.get_renderer()) == 0
     assert ax.get_legend().get_window_extent(renderer).y1 < ax.xaxis.label.get_window_extent().y0
     plt.close(fig)
-    # ... unless another panel lies there: then it stays inside, where it covers least
-    fig, axes = plt.subplots(2, 1, figsize=(4, 5))
-    for a in axes:
+    # ... unless another panel lies there: then it stays inside, where it covers least; a
+    # hidden slot of the grid is no panel
+    fig, axes = panel_grid(3, ncols=2, aspect=0.75)  # 2 x 2, the last slot hidden
+    for a in axes[:3]:
         a.scatter(rng.random(3000), rng.random(3000), s=2, label="points")
-    axes[0].legend(loc="upper right")
+        a.set_xlabel("x")
+        a.legend(loc="upper right")
     clear_legends(fig)
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
-    box = axes[0].get_legend().get_window_extent(renderer)
-    assert not box.overlaps(axes[1].get_tightbbox(renderer))
+    first, second = (a.get_legend().get_window_extent(renderer) for a in axes[:2])
+    assert not first.overlaps(axes[2].get_tightbbox(renderer))  # kept inside the top left
+    assert second.y1 < axes[1].xaxis.label.get_window_extent().y0  # below, over the hidden slot
     plt.close(fig)
 
 

@@ -170,8 +170,8 @@ def clear_legends(fig: plt.Figure) -> None:
         legend.set_bbox_to_anchor((0.5, below - 0.02), transform=ax.transAxes)
         fig.canvas.draw()
         box = legend.get_window_extent(renderer)
-        others = [a.get_tightbbox(renderer) for a in fig.axes if a is not ax]
-        if any(box.overlaps(other) for other in others):
+        others = [a.get_tightbbox(renderer) for a in fig.axes if a is not ax and a.get_visible()]
+        if any(other is not None and box.overlaps(other) for other in others):
             legend.set_loc("best")  # below would cover the next panel: the least covering place
             legend.set_bbox_to_anchor(None)
 
