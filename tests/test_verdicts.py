@@ -68,7 +68,7 @@ def test_published_verdicts_show_in_a_build_that_did_not_run_the_scale(runs):
     (row,) = [line for line in table.splitlines() if "NS reaches the goal" in line]
     assert scorecard.SYMBOL["holds"] in row and "published run" in row and "`01234567`" in row
     assert "stale" not in row
-    assert "1 of them verdicts published in the repository" in scorecard.tally(by_scale)
+    assert "1 of them from verdicts published in the repository" in scorecard.tally(by_scale)
 
 
 def test_a_verdict_is_stale_once_the_config_or_code_changes_and_a_run_here_comes_first(

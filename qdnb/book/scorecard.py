@@ -184,17 +184,17 @@ def tally(by_scale: dict[str, dict[str, dict | None]]) -> str:
         stale = [n for n in listed if runs[n].get("stale")]
         sources = []
         if imported:
-            sources.append(f"{len(imported)} of them published runs imported from elsewhere")
+            sources.append(f"{len(imported)} of them from published runs imported from elsewhere")
         if listed:
             sources.append(
-                f"{len(listed)} of them verdicts published in the repository"
+                f"{len(listed)} of them from verdicts published in the repository"
                 + (f", {len(stale)} stale (their code or config changed since)" if stale else "")
             )
         origin = "; " + "; ".join(sources) if sources else ", all computed by this build"
         out.append(
             f"- **`{s}`** ({SCALE_MEANING[s]}): {counts[HOLDS]} of {len(records)} claims hold, "
             f"{counts[FAILS]} fail, {counts[CANNOT_SHOW]} cannot show; {len(ran)} of "
-            f"{len(runs)} pages ran{origin}."
+            f"{len(runs)} pages have results{origin}."
         )
     return "\n".join(out) + "\n"
 
