@@ -235,6 +235,14 @@ def test_legends_move_off_the_data_and_never_onto_another_panel():
     assert legend_overlaps(ax, renderer := fig.canvas.get_renderer()) == 0
     assert ax.get_legend().get_window_extent(renderer).y1 < ax.xaxis.label.get_window_extent().y0
     plt.close(fig)
+    # a legend its maker put outside the panel stays there, whatever the panel clips away
+    fig, ax = plt.subplots(figsize=(4, 3))
+    ax.plot(x, 3 * x - 2, label="leaves the panel below")
+    ax.set_ylim(0, 1)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.15))
+    clear_legends(fig)
+    assert ax.get_legend()._loc == 9 and ax.get_legend().get_bbox_to_anchor().y0 < ax.bbox.y0
+    plt.close(fig)
     # ... unless another panel lies there: then it stays inside, where it covers least; a
     # hidden slot of the grid is no panel
     fig, axes = panel_grid(3, ncols=2, aspect=0.75)  # 2 x 2, the last slot hidden

@@ -122,7 +122,8 @@ def integer_axes(fig: plt.Figure) -> None:
 
 def _data_points(ax: plt.Axes) -> np.ndarray:
     """The display coordinates of what ``ax`` draws as data: its curves' vertices and
-    its scatters' points (bands and images are backgrounds a legend may sit on)."""
+    its scatters' points inside the panel (bands and images are backgrounds a legend
+    may sit on)."""
     from matplotlib.collections import PathCollection
 
     points = [line.get_transform().transform(line.get_xydata()) for line in ax.lines]
@@ -135,7 +136,9 @@ def _data_points(ax: plt.Axes) -> np.ndarray:
     if not points:
         return np.zeros((0, 2))
     p = np.concatenate(points)
-    return p[np.all(np.isfinite(p), axis=1)]
+    frame = ax.bbox  # what the panel clips away is not drawn
+    shown = (p[:, 0] >= frame.x0) & (p[:, 0] <= frame.x1) & (p[:, 1] >= frame.y0)
+    return p[np.all(np.isfinite(p), axis=1) & shown & (p[:, 1] <= frame.y1)]
 
 
 def legend_overlaps(ax: plt.Axes, renderer) -> int:
