@@ -259,6 +259,31 @@ def test_legends_move_off_the_data_and_never_onto_another_panel():
     plt.close(fig)
 
 
+def test_tick_labels_that_collide_are_thinned_and_hand_placed_ones_stay():
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MultipleLocator
+
+    from qdnb.plotting import _labels_collide, integer_axes, thin_ticks
+
+    fig, (ax, named) = plt.subplots(1, 2, figsize=(4, 2))
+    ax.plot(np.arange(0, 8001, 800), np.arange(11))
+    ax.set_xlabel("environment steps")
+    ax.xaxis.set_major_locator(MultipleLocator(800))  # 11 long labels in a narrow panel
+    named.bar(range(6), np.ones(6))
+    named.set_xticks(range(6), [f"method {i}" for i in range(6)])  # collide, but by hand
+    integer_axes(fig)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    assert _labels_collide(ax.xaxis, renderer) and _labels_collide(named.xaxis, renderer)
+    thin_ticks(fig)
+    fig.canvas.draw()
+    assert not _labels_collide(ax.xaxis, renderer)
+    ticks = ax.get_xticks()
+    assert 2 <= len(ticks) < 11 and np.allclose(ticks, np.round(ticks))  # still integers
+    assert [t.get_text() for t in named.get_xticklabels()] == [f"method {i}" for i in range(6)]
+    plt.close(fig)
+
+
 def test_axes_that_count_iterations_or_epochs_have_integer_ticks():
     import matplotlib.pyplot as plt
 

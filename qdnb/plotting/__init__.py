@@ -120,6 +120,37 @@ def integer_axes(fig: plt.Figure) -> None:
                 axis.set_major_locator(MaxNLocator(integer=True))
 
 
+def _labels_collide(axis, renderer) -> bool:
+    """Whether two of ``axis``'s visible tick labels overlap."""
+    boxes = [
+        t.label1.get_window_extent(renderer)
+        for t in axis.get_major_ticks()
+        if t.label1.get_visible() and t.label1.get_text()
+    ]
+    return any(a.overlaps(b) for a, b in zip(boxes, boxes[1:]))
+
+
+def thin_ticks(fig: plt.Figure) -> None:
+    """Fewer ticks on every linear axis of ``fig`` whose tick labels run into each other
+    (a narrow panel of long numbers): as many as fit, integer ones where they were."""
+    from matplotlib.ticker import FixedLocator, MaxNLocator
+
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() != "linear" or isinstance(axis.get_major_locator(), FixedLocator):
+                continue  # (ticks placed by hand, often with their own labels, stay)
+            if not _labels_collide(axis, renderer):
+                continue
+            integer = getattr(axis.get_major_locator(), "_integer", False)
+            for bins in (6, 5, 4, 3, 2):
+                axis.set_major_locator(MaxNLocator(nbins=bins, integer=integer))
+                fig.canvas.draw()
+                if not _labels_collide(axis, renderer):
+                    break
+
+
 def _data_points(ax: plt.Axes) -> np.ndarray:
     """The display coordinates of what ``ax`` draws as data: its curves' vertices and
     its scatters' points inside the panel (bands and images are backgrounds a legend
@@ -242,8 +273,8 @@ def show(
     a reader who cannot see it) and ``name``, a label other text can refer to.  In
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
     shrunk into the column, its fonts would fall below 9 points.  Axes that count
-    (``integer_axes``) get integer ticks, and legends move off the data
-    (``clear_legends``).  A degenerate figure
+    (``integer_axes``) get integer ticks, tick labels that collide are thinned
+    (``thin_ticks``), and legends move off the data (``clear_legends``).  A degenerate figure
     (``degeneracies``) is never shown silently: its caption says what is degenerate and
     ``note`` why (without a note the book's build refuses the page)."""
     import base64
@@ -262,6 +293,7 @@ def show(
         plt.close(fig)
         raise ValueError("a book figure needs a caption and an alt text")
     integer_axes(fig)
+    thin_ticks(fig)
     clear_legends(fig)
     broken = degeneracies(fig)
     if broken:
