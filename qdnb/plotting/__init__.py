@@ -121,9 +121,11 @@ def integer_axes(fig: plt.Figure) -> None:
 
 
 def _labels_collide(axis, renderer) -> bool:
-    """Whether two of ``axis``'s visible tick labels overlap."""
+    """Whether two of ``axis``'s visible tick labels overlap or come within 2 points of
+    each other (labels that touch read as one number)."""
+    gap = renderer.points_to_pixels(2.0) / 2
     boxes = [
-        t.label1.get_window_extent(renderer)
+        t.label1.get_window_extent(renderer).padded(gap)
         for t in axis.get_major_ticks()
         if t.label1.get_visible() and t.label1.get_text()
     ]
