@@ -153,6 +153,12 @@ def thin_ticks(fig: plt.Figure) -> None:
                     break
 
 
+def _within(points: np.ndarray, box) -> np.ndarray:
+    """Which of the ``(n, 2)`` display ``points`` lie in ``box`` (a Bbox), edges included."""
+    x, y = points[:, 0], points[:, 1]
+    return (x >= box.x0) & (x <= box.x1) & (y >= box.y0) & (y <= box.y1)
+
+
 def _data_points(ax: plt.Axes) -> np.ndarray:
     """The display coordinates of what ``ax`` draws as data: its curves' vertices and
     its scatters' points inside the panel (bands and images are backgrounds a legend
@@ -169,9 +175,8 @@ def _data_points(ax: plt.Axes) -> np.ndarray:
     if not points:
         return np.zeros((0, 2))
     p = np.concatenate(points)
-    frame = ax.bbox  # what the panel clips away is not drawn
-    shown = (p[:, 0] >= frame.x0) & (p[:, 0] <= frame.x1) & (p[:, 1] >= frame.y0)
-    return p[np.all(np.isfinite(p), axis=1) & shown & (p[:, 1] <= frame.y1)]
+    # what the panel clips away is not drawn
+    return p[np.all(np.isfinite(p), axis=1) & _within(p, ax.bbox)]
 
 
 def legend_overlaps(ax: plt.Axes, renderer) -> int:
@@ -179,10 +184,7 @@ def legend_overlaps(ax: plt.Axes, renderer) -> int:
     legend = ax.get_legend()
     if legend is None:
         return 0
-    box = legend.get_window_extent(renderer)
-    p = _data_points(ax)
-    inside = (p[:, 0] >= box.x0) & (p[:, 0] <= box.x1) & (p[:, 1] >= box.y0) & (p[:, 1] <= box.y1)
-    return int(inside.sum())
+    return int(_within(_data_points(ax), legend.get_window_extent(renderer)).sum())
 
 
 def clear_legends(fig: plt.Figure) -> None:
