@@ -259,6 +259,51 @@ def test_legends_move_off_the_data_and_never_onto_another_panel():
     plt.close(fig)
 
 
+def test_arrows_count_as_data_a_legend_moves_off():
+    import matplotlib.pyplot as plt
+
+    from qdnb.plotting import clear_legends, legend_overlaps, reward_arrows
+
+    fig, ax = plt.subplots(figsize=(4, 3))
+    reward_arrows(ax, (0.9, 0.9), (0, 0), (1, 1), n=15)  # arrows over the whole panel
+    ax.scatter([0.1], [0.1], label="start")
+    ax.legend(loc="upper left")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    assert legend_overlaps(ax, renderer) > 0  # the arrows' tails under the legend count
+    clear_legends(fig)
+    fig.canvas.draw()
+    assert legend_overlaps(ax, renderer) == 0
+    plt.close(fig)
+
+
+def test_a_legend_entry_whose_curve_cannot_be_seen_says_why():
+    import matplotlib.pyplot as plt
+
+    from qdnb.plotting import name_unseen_lines
+
+    fig, ax = plt.subplots(figsize=(4, 3))
+    x = np.arange(10.0)
+    ax.plot(x, 1 + x, label="NSR-ES")
+    ax.plot(x, 1 + x, label="NSRA-ES")  # drawn after, exactly over NSR-ES
+    ax.plot(x, 2 + x, label="ME-ES")
+    ax.axhline(0.0, ls=":", label="replay floor")  # zero: a log axis cannot place it
+    ax.set_yscale("log")
+    ax.plot(x, 1e6 + x, label="far")
+    ax.set_ylim(0.5, 100)  # ... and "far" lies above the panel
+    ax.legend()
+    name_unseen_lines(fig)
+    texts = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert texts == [
+        "NSR-ES (under NSRA-ES)",
+        "NSRA-ES",
+        "ME-ES",
+        "replay floor (at 0, off the log scale)",
+        "far (outside the panel)",
+    ]
+    plt.close(fig)
+
+
 def test_tick_labels_that_collide_are_thinned_and_hand_placed_ones_stay():
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MultipleLocator

@@ -16,6 +16,7 @@ from qdnb.core import paths
 PAGE = """<!DOCTYPE html><html><head><meta charset="utf-8"><style>
 body {{ margin: 0; }} article.bd-article {{ width: 700px; }}
 .qdnb-table {{ overflow-x: auto; max-width: 100%; }}
+div.output {{ overflow-x: auto; }} .narrow {{ width: 600px; }}
 </style>{head}</head><body><article class="bd-article">
 <p>Prose with <span class="math">\\(x^2\\)</span> rendered.</p>
 <div class="cell_output docutils container"><div class="output"><div>
@@ -43,6 +44,14 @@ FAULTS = {
         "",
         '<div class="qdnb-table"><table><tr>' + "<td>coverage</td>" * 40 + "</tr></table></div>",
         "a table wider than the column",
+    ),
+    # an output narrower than the column (a cell's padding) that scrolls its table sideways
+    "wide_output": (
+        "",
+        '</div></div><div class="output narrow"><table><tr>'
+        + "<td>coverage</td>" * 12
+        + "</tr></table>",
+        "an output wider than the column",
     ),
     "progress_bar": (
         "",
@@ -76,6 +85,9 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
             "the goal with 10x fewer...</td></tr></tbody></table>",
         )
     )
+    (html / "styler.html").write_text(
+        PAGE.format(head="", output='<table id="T_7d481"><tr><td>0.845</td></tr></table>')
+    )
     (html / "words.html").write_text(
         PAGE.format(
             head="",
@@ -103,6 +115,7 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
     assert any("progress_bar.html: a progress bar" in p for p in problems)
     assert any("pandas.html: a pandas table shows its 0, 1, 2" in p for p in problems)
     assert any("pandas.html: a table cell cut to '...'" in p for p in problems)
+    assert any("styler.html: a table styled by pandas" in p for p in problems)
     assert not [p for p in problems if p.startswith("index.html")]  # the clean page
 
 

@@ -1,7 +1,8 @@
 """Checks of the rendered book, as a reader meets it.
 
 ``static_problems`` reads the HTML files (no browser): raw LaTeX left in a cell's
-output, a pandas table with its 0, 1, 2... index or cells cut to "...", a progress bar,
+output, a pandas table with its 0, 1, 2... index or cells cut to "..." or styled by pandas
+(``DataFrame.style``, which bypasses the book's tables), a progress bar,
 and in the article's text (outside code and math) a snake_case identifier, a "± 0.0"
 spread or a figure flagged degenerate (``qdnb.plotting.degeneracies``) without a note.
 The book build refuses a page with any of them.
@@ -9,7 +10,8 @@ The book build refuses a page with any of them.
 ``browser_problems`` opens every page in headless Chromium (Selenium, Debian's
 ``chromium`` and ``chromium-driver``) and reports what only a browser sees: a
 JavaScript error, a broken image, a table or figure wider than the content column (a
-table scrolling inside its box counts, unless it is marked a data dump, ``.qdnb-dump``),
+table scrolling inside its box counts, unless it is marked a data dump, ``.qdnb-dump``;
+so does any other output scrolling sideways),
 ``$`` math that MathJax left unrendered, a progress-bar line in the page's text.
 """
 
@@ -172,6 +174,11 @@ def static_problems(html_dir: Path) -> list[str]:
                 if PROGRESS_BAR.search(line):
                     problems.append(f"{name}: a progress bar in an output: {line.strip()[:80]!r}")
             for table in output["tables"]:
+                if re.match(r'<table[^>]*\bid="T_', table):
+                    problems.append(
+                        f"{name}: a table styled by pandas (DataFrame.style), not as a book "
+                        "table: display the DataFrame itself"
+                    )
                 pandas = re.search(r'<table[^>]*class="[^"]*dataframe', table)
                 if pandas and re.search(r"<th[^>]*>\s*0\s*</th>\s*<td", table):
                     problems.append(f"{name}: a pandas table shows its 0, 1, 2... index")
@@ -236,6 +243,14 @@ for (const wrapper of document.querySelectorAll('.qdnb-table, .pst-scrollable-ta
     out.push(`a table wider than the column (${wrapper.scrollWidth} > ` +
              `${Math.min(wrapper.clientWidth, Math.round(width))} px): ` +
              head.join(' | ').slice(0, 80));
+  }
+}
+// an output whose content runs past the cell scrolls sideways inside its box (a book
+// table is checked above, with its data-dump exception)
+for (const o of document.querySelectorAll('div.cell_output, div.cell_output div.output')) {
+  if (!o.querySelector('.qdnb-table') && o.scrollWidth > o.clientWidth + 2) {
+    out.push(`an output wider than the column (${o.scrollWidth} > ${o.clientWidth} px): ` +
+             (o.innerText || '').trim().slice(0, 60));
   }
 }
 for (const o of document.querySelectorAll('div.cell_output')) {

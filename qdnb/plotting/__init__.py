@@ -9,6 +9,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from qdnb.core.names import ENV_LABELS  # noqa: F401  (the notebooks' labels)
+from qdnb.core.names import number_text
 from qdnb.plotting.tables import use_book_tables
 
 # One colour per method across the book (a QDT takes the colour of the repertoire it learns from).
@@ -160,16 +161,17 @@ def _within(points: np.ndarray, box) -> np.ndarray:
 
 
 def _data_points(ax: plt.Axes) -> np.ndarray:
-    """The display coordinates of what ``ax`` draws as data: its curves' vertices and
-    its scatters' points inside the panel (bands and images are backgrounds a legend
-    may sit on)."""
+    """The display coordinates of what ``ax`` draws as data: its curves' vertices, its
+    scatters' points and its arrows' tails inside the panel (bands and images are
+    backgrounds a legend may sit on)."""
     from matplotlib.collections import PathCollection
+    from matplotlib.quiver import Quiver
 
     points = [line.get_transform().transform(line.get_xydata()) for line in ax.lines]
     points += [
         c.get_offset_transform().transform(np.asarray(c.get_offsets(), dtype=float))
         for c in ax.collections
-        if isinstance(c, PathCollection)  # a scatter
+        if isinstance(c, (PathCollection, Quiver))  # a scatter's points, arrows' tails
     ]
     points = [p for p in points if np.size(p)]
     if not points:
@@ -212,6 +214,48 @@ def clear_legends(fig: plt.Figure) -> None:
         if any(other is not None and box.overlaps(other) for other in others):
             legend.set_loc("best")  # below would cover the next panel: the least covering place
             legend.set_bbox_to_anchor(None)
+
+
+def _unseen(line, ax: plt.Axes) -> str | None:
+    """Why ``line`` draws nothing a reader can see in ``ax``, or ``None`` when it does:
+    values a log axis cannot place (zero or below), or none inside the panel."""
+    y = _finite(line.get_ydata())
+    if y is None or y.size == 0:
+        return None
+    if ax.get_yscale() == "log" and np.all(y <= 0):
+        return f"at {number_text(float(y.max()))}, off the log scale"
+    xy = line.get_transform().transform(line.get_xydata())
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    return None if _within(xy, ax.bbox).any() else "outside the panel"
+
+
+def name_unseen_lines(fig: plt.Figure) -> None:
+    """A legend entry whose curve a reader cannot find says why: the curve lies off the
+    panel (``_unseen``: "replay floor (at 0, off the log scale)") or exactly under a curve
+    drawn after it ("NSR-ES (under NSRA-ES)")."""
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        if legend is None:
+            continue
+        ax.get_xlim(), ax.get_ylim()  # (the view limits the curves are placed in, autoscaled)
+        lines = [line for line in ax.lines if not line.get_label().startswith("_")]
+        texts = {t.get_text(): t for t in legend.get_texts()}
+        for i, line in enumerate(lines):
+            text = texts.get(line.get_label())
+            if text is None:
+                continue
+            why = _unseen(line, ax)
+            if why is None:
+                mine = line.get_xydata()
+                above = [
+                    later.get_label()
+                    for later in lines[i + 1 :]
+                    if later.get_xydata().shape == mine.shape
+                    and np.allclose(later.get_xydata(), mine, equal_nan=True)
+                ]
+                why = f"under {above[-1]}" if above else None
+            if why:
+                text.set_text(f"{text.get_text()} ({why})")
 
 
 def degeneracies(fig: plt.Figure) -> list[str]:
@@ -278,7 +322,8 @@ def show(
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
     shrunk into the column, its fonts would fall below 9 points.  Axes that count
     (``integer_axes``) get integer ticks, tick labels that collide are thinned
-    (``thin_ticks``), and legends move off the data (``clear_legends``).  A degenerate figure
+    (``thin_ticks``), a legend entry whose curve cannot be seen says why
+    (``name_unseen_lines``), and legends move off the data (``clear_legends``).  A degenerate figure
     (``degeneracies``) is never shown silently: its caption says what is degenerate and
     ``note`` why (without a note the book's build refuses the page)."""
     import base64
@@ -298,6 +343,7 @@ def show(
         raise ValueError("a book figure needs a caption and an alt text")
     integer_axes(fig)
     thin_ticks(fig)
+    name_unseen_lines(fig)
     clear_legends(fig)
     broken = degeneracies(fig)
     if broken:
