@@ -8,8 +8,10 @@ from typing import Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-from qdnb.core.names import ENV_LABELS  # noqa: F401  (the notebooks' labels)
-from qdnb.core.names import number_text
+from qdnb.core.names import (
+    ENV_LABELS,  # noqa: F401  (the notebooks' labels)
+    number_text,
+)
 from qdnb.plotting.tables import use_book_tables
 
 # One colour per method across the book (a QDT takes the colour of the repertoire it learns from).
