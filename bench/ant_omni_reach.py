@@ -50,7 +50,7 @@ if "--xla-default" not in sys.argv:
 import jax
 import numpy as np
 
-from qdnb.book.provenance import device, git_sha, versions
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch4_reproducibility import (
     COVERAGE_TARGET,
@@ -117,9 +117,6 @@ def levers(base, scale: str, key, out_path: Path) -> None:
     out.update(
         benchmark="Chapter 4 Ant-Omni: what lets the Low-Spread repertoires travel",
         scale=scale,
-        commit=git_sha(),
-        device=device(),
-        versions=versions(),
         pilot_seed=PILOT_SEED,
         box=base.ant_omni_box,
         cells=base.num_cells,
@@ -152,7 +149,7 @@ def levers(base, scale: str, key, out_path: Path) -> None:
             "methods": entry,
         }
         print(name, {m: round(v["mean"], 3) for m, v in entry.items()}, flush=True)
-        out_path.write_text(json.dumps(out, indent=1) + "\n")
+        write_result(out_path, out)
     print("wrote", out_path)
 
 
@@ -186,9 +183,6 @@ def main() -> None:
     out = {
         "benchmark": "Chapter 4 small descriptor spaces: reach and cell counts",
         "scale": args.scale,
-        "commit": git_sha(),
-        "device": device(),
-        "versions": versions(),
         "pilot_seed": PILOT_SEED,
         "budget": {
             "num_seeds": base.num_seeds,
@@ -241,7 +235,7 @@ def main() -> None:
     out["num_cells"] = min(
         c["num_cells"] for c in out["cells"].values()
     )  # one count for both environments
-    args.out.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(args.out, out)
     print("wrote", args.out)
 
 

@@ -29,7 +29,6 @@ Writes ``bench/results/ant_omni_termination.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -37,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.book.provenance import device, git_sha, versions
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch4_qdt import repertoire_path
 from qdnb.chapters.ch4_reproducibility import METHODS, load_repertoires
@@ -157,13 +156,10 @@ def main() -> None:
     out = {
         "benchmark": "Ant-Omni: episodes that end early, and why",
         "scale": args.scale,
-        "commit": git_sha(),
-        "device": device(),
-        "versions": versions(),
         "elites": elites(args.scale, args.episodes, jax.random.fold_in(key, 0)),
         "random_policies": pipelines(args.scale, args.random, jax.random.fold_in(key, 1)),
     }
-    args.out.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(args.out, out)
     print("wrote", args.out)
 
 

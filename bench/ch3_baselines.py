@@ -12,15 +12,13 @@ same episodes and gradient steps per iteration as the notebook), in chunks of 5.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_baselines import BASELINES
 from qdnb.chapters.ch3_qdpg import build_algorithms, steady_rate
@@ -47,9 +45,6 @@ def main() -> None:
     algorithms = build_algorithms(tasks, "pointmaze", methods=methods)
     out = {
         "scale": args.scale,
-        "machine": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "device": str(jax.devices()[0]),
         "iterations": args.iterations,
         "episodes_per_iteration": task.num_actors,
         "episode_length": task.episode_length,
@@ -81,7 +76,7 @@ def main() -> None:
     qdpg = out["methods"]["QD-PG"]["env_steps_per_second"]
     for entry in out["methods"].values():
         entry["rate_over_qdpg"] = round(entry["env_steps_per_second"] / qdpg, 2)
-    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    write_result(Path(args.out), out)
     print("wrote", args.out)
 
 

@@ -29,11 +29,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.book.provenance import device, git_sha
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms, make_task_env, run_method
 from qdnb.core import paths
-from qdnb.core.io import atomic_write_json
 from qdnb.envs.pointmaze import maze_regions
 
 ORDER = ("QD-PG", "TD3", "Q-PG", "D-PG", "QD-PG Sum", "PGA-ME")
@@ -127,10 +126,7 @@ def main() -> None:
     out = {
         "what": "Chapter 3's Point-Maze at paper scale (Table 3.2), "
         f"{args.seeds} seeds side by side",
-        "device": device(),
         "host": platform.node(),
-        "commit": git_sha(),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "steps": task.num_steps,
         "seeds": args.seeds,
         "settings": dataclasses.asdict(task),
@@ -139,7 +135,7 @@ def main() -> None:
         "methods": methods,
         "wall_seconds": time.perf_counter() - began,
     }
-    atomic_write_json(args.out, out)
+    write_result(args.out, out)
     print(f"wrote {args.out}")
 
 

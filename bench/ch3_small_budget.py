@@ -36,7 +36,7 @@ from pathlib import Path
 
 import jax
 
-from qdnb.book.provenance import device, git_sha
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import (
     QDPG_METHODS,
@@ -81,7 +81,7 @@ def check(run_dir: Path) -> None:
     )
     chosen = [c["chosen_steps"] for c in checks]
     out["chosen_steps_by_the_pages"] = None if None in chosen else min(chosen)
-    RESULTS.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(RESULTS, out)  # (the record's own device, commit and date stay)
     print(json.dumps({"chosen_steps": out["chosen_steps_by_the_pages"]}), f"wrote {RESULTS}")
 
 
@@ -128,9 +128,6 @@ def main() -> None:
     budgets = {str(b): page(b) for b in range(STEP, 400_001, STEP)}
     fitting = [b for b in range(STEP, 400_001, STEP) if page(b) <= PAGE_SECONDS]
     out = {
-        "device": device(),
-        "commit": git_sha(),
-        "date": time.strftime("%Y-%m-%d"),
         "rule": __doc__.split("The rule")[1].split("Measured here")[0].strip(),
         "probe_iterations": args.probe,
         "point_maze_loops": loops,
@@ -138,7 +135,7 @@ def main() -> None:
         "projected_page_seconds_by_budget": budgets,
         "chosen_steps": max(fitting) if fitting else None,
     }
-    RESULTS.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(RESULTS, out)
     print(json.dumps({k: out[k] for k in ("chosen_steps",)}), f"wrote {RESULTS}")
 
 

@@ -99,8 +99,7 @@ def main() -> None:
         print(json.dumps(child(args.env, args.iterations[0], args.methods)))
         return
 
-    from qdnb.book.provenance import device, git_sha
-    from qdnb.core.io import atomic_write_json
+    from qdnb.book.provenance import write_result
 
     runs = []
     for setting, flags in SETTINGS.items():
@@ -140,12 +139,9 @@ def main() -> None:
             }
     totals = {s: round(sum(v["at_10_evaluations"] for v in f.values()), 1) for s, f in fits.items()}
     choice = "opt0" if totals["opt0"] <= 0.9 * totals["page"] else "page"
-    atomic_write_json(
+    write_result(
         OUT,
         {
-            "device": device(),
-            "commit": git_sha(),
-            "date": time.strftime("%Y-%m-%d %H:%M"),
             "env": args.env,
             "methods": args.methods,
             "runs": runs,

@@ -172,9 +172,8 @@ def main() -> None:
     )
     args = parser.parse_args()
 
-    from qdnb.book.provenance import device, git_sha
+    from qdnb.book.provenance import device, git_sha, write_result
     from qdnb.chapters.ch4_reproducibility import METHODS, SCALES
-    from qdnb.core.io import atomic_write_json
 
     cfg = SCALES["small"]
     rates = {env: chunk_rates(cfg, env, args.chunks) for env in cfg.environments}
@@ -215,7 +214,7 @@ def main() -> None:
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }
     out["benchmark"] = __doc__.splitlines()[0]
-    atomic_write_json(args.out, out)
+    write_result(args.out, out)  # (each run keeps its own device, commit and date)
     print(f"wrote {args.out}: saving {saving:.0%}")
 
 

@@ -26,9 +26,6 @@ about 1.5 ms of a ~110 ms generation): its rate can exceed the bare one's.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -36,6 +33,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+from qdnb.book.provenance import write_result
 from qdnb.chapters import ch3_evolution
 from qdnb.chapters.ch3_qdpg import build_algorithms, make_task_env
 from qdnb.envs.rollout import evaluate_policies
@@ -131,9 +129,6 @@ def main() -> None:
         parser.error("--repeats and --trials must be >= 1")
     cfg = ch3_evolution.SCALES[args.scale]
     out = {
-        "machine": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "device": str(jax.devices()[0]),
         "scale": args.scale,
         "trials": args.trials,
         "target_rate_over_bare": 0.9,
@@ -142,7 +137,7 @@ def main() -> None:
         out["pointmaze"] = bench_env(cfg, "pointmaze", METHODS, args.repeats, args.trials)
     if "antmaze" in args.envs:
         out["antmaze"] = bench_env(cfg, "antmaze", tuple(args.ant_methods), 1, args.trials)
-    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    write_result(Path(args.out), out)
     print("wrote", args.out)
 
 

@@ -33,8 +33,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from qdnb.book.provenance import device, versions
-from qdnb.core.io import atomic_write_json
+from qdnb.book.provenance import write_result
 from qdnb.models.lenia import flow_lenia as fl
 
 
@@ -140,10 +139,7 @@ def main():
             f"{row['free_running_final_max_abs_diff_A']:.2e} apart"
         )
         results.append(row)
-    atomic_write_json(
-        args.out,
-        {"benchmark": "flow_lenia", "device": device(), "versions": versions(), "results": results},
-    )
+    write_result(args.out, {"benchmark": "flow_lenia", "results": results})
     print(f"wrote {args.out}")
 
 

@@ -33,10 +33,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.book.provenance import device, versions
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch5_flow_lenia import pick_system
-from qdnb.core.io import atomic_write_json
 
 
 def main():
@@ -77,7 +76,7 @@ def main():
                 f"{args.candidates} meet the criteria, kept {row['kept']} ({row['seconds']} s)"
             )
             rows.append(row)
-    atomic_write_json(
+    write_result(
         args.out,
         {
             "benchmark": "flow_lenia_p0",
@@ -87,8 +86,6 @@ def main():
             "candidates": args.candidates,
             "probes": args.probes,
             "seed": args.seed,
-            "device": device(),
-            "versions": versions(),
             "results": rows,
         },
     )

@@ -25,9 +25,8 @@ from pathlib import Path
 
 import jax
 
-from qdnb.book.provenance import device, versions
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
-from qdnb.core.io import atomic_write_json
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.models.lenia.flt import make_model, train
 
@@ -65,15 +64,13 @@ def main():
         print(row, flush=True)
         rows.append(row)
     name = "flt_dryrun_cut_variant.json" if args.variant else "flt_dryrun_cut.json"
-    atomic_write_json(
+    write_result(
         Path(__file__).parent / "results" / name,
         {
             "benchmark": "flt_dryrun_cut",
             "model": "ours (variant)" if args.variant else "the thesis's FLT",
             "full_batch": full,
-            "device": device(),
             "devices": jax.device_count(),
-            "versions": versions(),
             "results": rows,
         },
     )

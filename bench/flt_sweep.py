@@ -43,10 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.book.provenance import device, versions
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch5_flow_lenia import pick_system
-from qdnb.core.io import atomic_write_json
 from qdnb.models.lenia import flow_lenia as fl
 from qdnb.models.lenia.flt import frame_errors, make_model, train, unroll
 
@@ -186,7 +185,7 @@ def main():
             key=lambda r: r[criterion],
             default={"variant": None},
         )["variant"]
-        atomic_write_json(
+        write_result(
             args.out,
             {
                 "benchmark": "flt_sweep",
@@ -197,8 +196,6 @@ def main():
                 "family": args.family,
                 "selection": f"lowest {criterion} among eligible variants",
                 "selected": best,
-                "device": device(),
-                "versions": versions(),
                 "results": list(rows.values()),
             },
         )

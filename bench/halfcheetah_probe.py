@@ -23,7 +23,6 @@ issue for comparison, marked as such.  Writes ``bench/results/halfcheetah_probe.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.book.provenance import device, git_sha, versions
+from qdnb.book.provenance import write_result
 from qdnb.envs.base import EnvState
 from qdnb.envs.locomotion import BraxTask, HalfcheetahUni, _brax_env
 from qdnb.envs.rollout import evaluate_policies
@@ -111,9 +110,6 @@ def main() -> None:
     }
     out = {
         "benchmark": "Halfcheetah-Uni: descriptors of 256 starting policies",
-        "commit": git_sha(),
-        "device": device(),
-        "versions": versions(),
         "policies": NUM_POLICIES,
         "episode_length": EPISODE_LENGTH,
         "hidden": list(HIDDEN),
@@ -125,7 +121,7 @@ def main() -> None:
         out["ours"][name] = probe(env, activation, key)
         print(f"{name:55s}", out["ours"][name], flush=True)
     path = Path(__file__).parent / "results" / "halfcheetah_probe.json"
-    path.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(path, out)
     print("wrote", path)
 
 

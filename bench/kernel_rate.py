@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import tempfile
 from pathlib import Path
 
 import jax
 import nbformat
 
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.book.runner import execute
 from qdnb.chapters.ch3_qdpg import run_environment
@@ -63,8 +62,6 @@ def main() -> None:
     rates["in this process"] = out.methods["QD-PG"].steady_seconds_per_iteration
     record = {
         "scale": args.scale,
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
         "iterations": args.iterations,
         "seeds": cfg.seeds("pointmaze", "QD-PG"),
         "num_actors": cfg.pointmaze.num_actors,
@@ -72,7 +69,7 @@ def main() -> None:
         "kernel_over_process": rates["in a papermill kernel"] / rates["in this process"],
     }
     path = Path(__file__).parent / "results" / "kernel_rate.json"
-    path.write_text(json.dumps(record, indent=1) + "\n")
+    write_result(path, record)
     print(json.dumps(record, indent=1))
 
 

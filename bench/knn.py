@@ -29,7 +29,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from qdnb.book.provenance import device, git_sha
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms
 from qdnb.qd import spatial
@@ -132,17 +132,14 @@ def main() -> None:
         print(json.dumps(sweep[-1]), flush=True)
     spatial.WIDTHS = chosen
     out = {
-        "device": device(),
         "cores_used": len(os.sched_getaffinity(0)),
-        "commit": git_sha(),
-        "date": time.strftime("%Y-%m-%d"),
         "k": 10,
         "widths": chosen,
         "snapshots": rows,
         "width_sweep_on_iteration_40": sweep,
     }
     path = Path(__file__).parent / "results" / "knn.json"
-    path.write_text(json.dumps(out, indent=1) + "\n")
+    write_result(path, out)
     print(f"wrote {path}")
 
 

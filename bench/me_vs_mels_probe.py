@@ -4,12 +4,13 @@ experiment (100 CVT goals, 10 episodes) and the reassessment.  Not the chapter n
 wall time, not equal environment steps.  Usage: python bench/me_vs_mels_probe.py SECONDS OUT.json
 (bench/results/me_vs_mels_probe_h100.json: 180 s each on one H100, jax 0.11.2, brax 0.14.2)."""
 
-import json
 import sys
 import time
+from pathlib import Path
 
 import jax
 
+from qdnb.book.provenance import write_result
 from qdnb.envs import make_env
 from qdnb.envs.rollout import evaluate_episodes
 from qdnb.nets.mlp import MLP
@@ -69,4 +70,4 @@ for name, algo, E in [
         max_fitness=float(rep.fitnesses.max()),
     )
     print(name, out[name], flush=True)
-json.dump(out, open(sys.argv[2], "w"), indent=1)
+write_result(Path(sys.argv[2]), out)

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 from pathlib import Path
 
 import jax
 from tqdm import tqdm
 
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import run_environment
 
@@ -45,8 +44,6 @@ def main() -> None:
         print(name, rates[name], flush=True)
     result = {
         "scale": args.scale,
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
         "iterations": args.iterations,
         "seeds": cfg.seeds("pointmaze", "QD-PG"),
         "seconds_per_iteration": rates,
@@ -54,7 +51,7 @@ def main() -> None:
         "no_monitor_over_no_bar": rates["bar without it"] / rates["no bar"],
     }
     path = Path(__file__).parent / "results" / "progress_bar.json"
-    path.write_text(json.dumps(result, indent=1) + "\n")
+    write_result(path, result)
     print(json.dumps(result, indent=1))
 
 

@@ -30,8 +30,7 @@ from rollout import (
     bare_scan,  # bench/rollout.py: the same bare loop, batch taken from the parameters
 )
 
-from qdnb.book.provenance import device, versions
-from qdnb.core.io import atomic_write_json
+from qdnb.book.provenance import write_result
 from qdnb.envs import make_env
 from qdnb.nets.mlp import MLP, init_policies
 from qdnb.qd.algorithms import MapElitesLowSpread, PolicyMapElites
@@ -117,12 +116,10 @@ def main() -> None:
     rows = []
     for env_name in args.envs:
         rows += measure(env_name, args)
-    atomic_write_json(
+    write_result(
         args.out,
         {
             "benchmark": "Chapter 4 QD iteration vs bare simulation",
-            "device": device(),
-            "versions": versions(),
             "batch": args.batch,
             "cells": 256,
             "xla_flags": os.environ.get("XLA_FLAGS", ""),

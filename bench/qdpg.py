@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from qdnb.book.provenance import device, git_sha
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms, steady_rate
 from qdnb.qd.algorithms import run_seeds
@@ -178,9 +178,8 @@ def main() -> None:
         results[scale]["speed_up"] = (
             before["seconds_per_iteration"] / after["seconds_per_iteration"]
         )
-    out = {"device": device(), "commit": git_sha(), "date": time.strftime("%Y-%m-%d"), **results}
     path = Path(__file__).parent / "results" / "qdpg.json"
-    path.write_text(json.dumps(out, indent=2) + "\n")
+    write_result(path, results)
     print(f"wrote {path}")
 
 

@@ -56,7 +56,8 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from qdnb.book.provenance import code_version, device, git_sha
+from qdnb.book.provenance import RESULT_PROVENANCE as PROVENANCE
+from qdnb.book.provenance import code_version, write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import (
     POINTMAZE_PAPER,
@@ -70,7 +71,6 @@ from qdnb.chapters.ch3_qdpg import (
 )
 from qdnb.core import checkpoint, health
 from qdnb.core.config import config_hash
-from qdnb.core.io import atomic_write_bytes
 from qdnb.envs.pointmaze import WALLS
 
 RESULTS = Path(__file__).parent / "results" / "qdpg_ab.json"
@@ -209,9 +209,9 @@ def main() -> None:
             parts = health.part_names(jax.eval_shape(algo.init, jax.random.PRNGKey(0))[0])
             out["rows"] += seed_rows(variant, seeds, result, parts, wall)
             out.setdefault("variants", {})[variant] = what
-            out.update(device=device(), commit=git_sha(), date=time.strftime("%Y-%m-%d"),
-                       steps=args.steps)  # fmt: skip
-            atomic_write_bytes(args.out, (json.dumps(out, indent=1) + "\n").encode())
+            out["steps"] = args.steps
+            # the device, commit and date of the pair that finished last
+            out = write_result(args.out, {k: v for k, v in out.items() if k not in PROVENANCE})
             print(f"{variant} seeds {seeds}: {wall:.0f} s, wrote {args.out}", flush=True)
             checkpoint.activate(None)
 

@@ -45,15 +45,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
-from qdpg_sweep import code_commit, summarise
+from qdpg_sweep import summarise
 
+from qdnb.book.provenance import RESULT_PROVENANCE as PROVENANCE
+from qdnb.book.provenance import git_sha, write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms, make_task_env, run_method
 from qdnb.envs.pointmaze import maze_regions
@@ -140,13 +140,11 @@ def main() -> None:
             for k, v in dataclasses.asdict(cfg.pointmaze).items()
             if k not in ("num_steps", "buffer_size")
         },
-        machine=platform.processor() or platform.machine(),
-        cpu_count=os.cpu_count(),
         devices=len(jax.devices()),
         rule=RULE,
     )
     runs = result.setdefault("runs", {})
-    commit = code_commit()  # the code this process runs, read before it runs
+    commit = git_sha()  # the code this process runs, read before it runs
 
     def run(name: str, overrides: dict) -> None:
         if name in runs:
@@ -164,7 +162,7 @@ def main() -> None:
             commit=commit,
         )
         runs[name] = entry
-        args.out.write_text(json.dumps(result, indent=2) + "\n")
+        write_result(args.out, {k: v for k, v in result.items() if k not in PROVENANCE})
         print(name, {k: entry[k] for k in ("reached_exit", "final_performance", "seconds")})
 
     for name, overrides in VARIANTS.items():
@@ -179,7 +177,7 @@ def main() -> None:
         result["table_3_2_ratio"] = table_3_2_ratio(
             cfg, dataclasses.replace(base, coupling="thesis")
         )
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_result(args.out, {k: v for k, v in result.items() if k not in PROVENANCE})
 
 
 if __name__ == "__main__":

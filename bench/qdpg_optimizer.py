@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import POINTMAZE_PAPER, build_algorithms, in_exit_zone
 from qdnb.qd.algorithms import run_seeds
@@ -72,17 +72,14 @@ def main() -> None:
             print(rows[-1], flush=True)
     out = Path(__file__).parent / "results" / "qdpg_optimizer.json"
     out.parent.mkdir(exist_ok=True)
-    out.write_text(
-        json.dumps(
-            {
-                "seed": args.seed,
-                "num_critic_steps": small.pointmaze.num_critic_steps,
-                "num_pg_steps": small.pointmaze.num_pg_steps,
-                "runs": rows,
-            },
-            indent=2,
-        )
-        + "\n"
+    write_result(
+        out,
+        {
+            "seed": args.seed,
+            "num_critic_steps": small.pointmaze.num_critic_steps,
+            "num_pg_steps": small.pointmaze.num_pg_steps,
+            "runs": rows,
+        },
     )
 
 

@@ -20,15 +20,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from qdnb.book.provenance import git_sha
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms, make_task_env
 from qdnb.envs.pointmaze import WALLS, maze_regions
@@ -70,8 +68,6 @@ def main() -> None:
         "scale": args.scale,
         "steps": args.steps,
         "seed": args.seed,
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
         "walls": [list(w) for w in WALLS],
         "settings": {
             k: getattr(task, k)
@@ -86,7 +82,6 @@ def main() -> None:
                 "num_actors",
             )
         },
-        "commit": git_sha(),
         "methods": {},
     }
     for method in args.methods:
@@ -119,7 +114,7 @@ def main() -> None:
         }
         print(method, json.dumps(out["methods"][method], indent=1), flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=1) + "\n")
+        write_result(args.out, out)
 
 
 if __name__ == "__main__":

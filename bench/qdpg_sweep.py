@@ -29,13 +29,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from qdnb.book.provenance import RESULT_PROVENANCE as PROVENANCE
+from qdnb.book.provenance import git_sha, write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import run_environment, steps_to_exit
 
@@ -108,29 +109,6 @@ def summarise(result, seconds: float) -> dict:
     }
 
 
-def code_commit() -> str | None:
-    """The checkout's commit (with ``+dirty`` for uncommitted changes), or None outside git."""
-    import subprocess
-
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return head + ("+dirty" if dirty else "")
-
-
 def select(runs: dict, budget_seconds: float | None) -> str | None:
     """The selection rule of the docstring, on the variants with every method run."""
     scored = []
@@ -176,9 +154,6 @@ def main() -> None:
             "budget_steps": BUDGET[args.grid],
             "base": {**BASE, **(TINY_BASE if args.grid == "tiny" else {})},
             "grid": GRIDS[args.grid],
-            "device": jax.devices()[0].device_kind,
-            "machine": platform.processor() or platform.machine(),
-            "cpu_count": __import__("os").cpu_count(),
             "selection_rule": __doc__.split("Selection rule, ")[1].strip(),
         }
     )
@@ -194,11 +169,11 @@ def main() -> None:
             )
             entry = summarise(result.methods[method], time.perf_counter() - start)
             entry["settings"] = overrides
-            entry["commit"] = code_commit()  # wall times depend on the code that ran them
+            entry["commit"] = git_sha()  # wall times depend on the code that ran them
             runs.setdefault(name, {})[method] = entry
             out["selected"] = select(runs, args.qdpg_budget_seconds)
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(out, indent=2) + "\n")
+            write_result(args.out, {k: v for k, v in out.items() if k not in PROVENANCE})
             print(
                 name,
                 method,

@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.book.provenance import device, versions
+from qdnb.book.provenance import write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch4_qdt import (
     demonstrations,
@@ -60,7 +60,6 @@ from qdnb.chapters.ch4_qdt import (
     qdt_model,
     setting,
 )
-from qdnb.core.io import atomic_write_json
 from qdnb.envs import make_env
 from qdnb.models.qdt.data import Trajectories, seed_repertoire
 from qdnb.models.qdt.evaluate import goal_scores, imitation, play
@@ -237,8 +236,6 @@ def curve(args) -> None:
     out = {
         "benchmark": "QDT learning curves on small's data (CURVE_RULE)",
         "rule": CURVE_RULE,
-        "device": device(),
-        "versions": versions(),
         "scale": args.scale,
         "environment": args.env,
         "source": args.source,
@@ -282,7 +279,7 @@ def curve(args) -> None:
                 }
             )
             out["variants"][name] = {"fields": fields, "evaluations": rows, "finished": False}
-            atomic_write_json(args.out, out)  # a run cut short keeps its evaluations
+            write_result(args.out, out)  # a run cut short keeps its evaluations
             print(
                 f"{name} step {step_done}: "
                 + ", ".join(f"{k} {v:.4g}" for k, v in rows[-1].items() if k != "step"),
@@ -327,7 +324,7 @@ def curve(args) -> None:
             f"{out['variants'][name]['train_seconds_per_step']:.3f} s a step",
             flush=True,
         )
-        atomic_write_json(args.out, out)
+        write_result(args.out, out)
 
 
 def main() -> None:
@@ -451,13 +448,11 @@ def speed(argv) -> None:
         f"{agreement['max_abs_descriptor_difference']:.2e} (descriptors)"
     )
 
-    atomic_write_json(
+    write_result(
         args.out,
         {
             "benchmark": "QDT training throughput and cached vs full-recomputation rollouts on "
             "ant_omni",
-            "device": device(),
-            "versions": versions(),
             "scale": args.scale,
             "config": {
                 "embed_dim": cfg.embed_dim,

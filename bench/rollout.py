@@ -15,8 +15,7 @@ from pathlib import Path
 
 import jax
 
-from qdnb.book.provenance import device, versions
-from qdnb.core.io import atomic_write_json
+from qdnb.book.provenance import write_result
 from qdnb.core.sharding import shard_batch
 from qdnb.envs import make_env
 from qdnb.envs.rollout import evaluate_policies
@@ -96,13 +95,11 @@ def main() -> None:
             f"overhead {100 * (t_qdnb / t_bare - 1):+.1f}% (bare vs bare: "
             f"{100 * (t_control / t_bare - 1):+.1f}%)"
         )
-    atomic_write_json(
+    write_result(
         args.out,
         {
             "benchmark": "pointmaze policy evaluation",
             "policy": "MLP 2-16-16-2",
-            "device": device(),
-            "versions": versions(),
             "repeats": args.repeats,
             "results": rows,
         },

@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -416,7 +415,6 @@ def main() -> None:
         table[stage] = row
     out = {
         "scale": args.scale,
-        "machine": platform.processor() or platform.machine(),
         "cores": cores(),
         "default_devices": default_host_devices(),
         "real_devices": args.real,
@@ -424,7 +422,9 @@ def main() -> None:
         "stages": table,
     }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    from qdnb.book.provenance import write_result  # (jax in this process only now)
+
+    write_result(Path(args.out), out)
     print(json.dumps({s: {k: v.get("rate") for k, v in row.items() if isinstance(v, dict)}
                       for s, row in table.items()}, indent=1))  # fmt: skip
 

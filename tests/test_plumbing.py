@@ -96,6 +96,25 @@ def test_atomic_json_and_artifacts(tmp_path):
     assert to_jsonable({"a": np.float32(2.5), "b": np.array([1, 2])}) == {"a": 2.5, "b": [1, 2]}
 
 
+def test_a_bench_result_carries_its_provenance_and_keeps_its_own(tmp_path, monkeypatch):
+    import numpy as np
+
+    from qdnb.book.provenance import RESULT_PROVENANCE, write_result
+
+    monkeypatch.setenv("QDNB_GIT_SHA", "abc1234")
+    path = tmp_path / "r.json"
+    written = write_result(path, {"question": "q", "rate": np.float32(2.5)})
+    record = json.loads(path.read_text())
+    assert record == written and list(record)[: len(RESULT_PROVENANCE)] == list(RESULT_PROVENANCE)
+    assert record["commit"] == "abc1234" and record["rate"] == 2.5 and "jax" in record["versions"]
+    assert "CPU cores" in record["device"] and record["date"].endswith("UTC")
+    # a record that gives a provenance key itself (a resumed run's first commit) keeps it
+    again = write_result(path, {**record, "rate": 3.0})
+    assert again["commit"] == "abc1234" and again["date"] == record["date"]
+    monkeypatch.setenv("QDNB_GIT_SHA", "def5678")
+    assert write_result(path, {"rate": 3.0})["commit"] == "def5678"
+
+
 def test_summary_has_the_required_fields(monkeypatch, tmp_path):
     monkeypatch.delenv("QDNB_CHECKPOINTS", raising=False)
     monkeypatch.setattr(paths, "RUNS", tmp_path)

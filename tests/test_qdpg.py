@@ -487,6 +487,7 @@ def test_the_sweep_script_runs_a_tiny_grid_resumes_and_selects(tmp_path):
         assert all(s is None or 0 < s <= 4_000 for s in entry["steps_to_exit"])
         assert all(0 < e <= 4_000 for e in entry["env_steps"])
     assert again["runs"] == first["runs"] and first["selected"] == "base"
+    assert {"device", "commit", "date", "versions"} <= set(first)  # provenance.write_result
     fake = {
         "a": {
             "QD-PG": {"final_performance": [-50.0], "seconds": 100.0},

@@ -7,6 +7,7 @@ Every notebook run writes ``data/runs/<scale>/<notebook>/summary.json`` through
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
 import subprocess
@@ -18,7 +19,7 @@ from typing import Any
 from qdnb.book import registry, verdicts
 from qdnb.core import checkpoint, paths, sharding
 from qdnb.core.config import check_scale, config_dict, config_hash
-from qdnb.core.io import atomic_write_json
+from qdnb.core.io import atomic_write_bytes, atomic_write_json, to_jsonable
 
 PACKAGES = ("jax", "jaxlib", "brax", "flax", "optax", "orbax-checkpoint")
 
@@ -31,6 +32,30 @@ def versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[name] = "not installed"
     return out
+
+
+# what every bench result file records of where and when it was measured
+RESULT_PROVENANCE = ("device", "commit", "date", "versions")
+
+
+def write_result(path: Path, record: dict[str, Any]) -> dict[str, Any]:
+    """Write a ``bench/`` script's result file: its ``record`` (the question, the settings
+    and the answers) after the provenance every result carries, ``RESULT_PROVENANCE``: the
+    device (processor included), the commit of the code that ran, the UTC date and time,
+    and the packages' versions.  A key the record gives itself wins (a run that resumed
+    keeps the commit it started from).  Written atomically, so a reader never meets half a
+    file; rewritten as often as a resumable script finishes a part.  Returns what it
+    wrote."""
+    full = {
+        "device": device(),
+        "commit": git_sha(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "versions": versions(),
+        **record,
+    }
+    full = to_jsonable(full)
+    atomic_write_bytes(Path(path), (json.dumps(full, indent=1) + "\n").encode())
+    return full
 
 
 def processor() -> str:
