@@ -825,7 +825,8 @@ def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
 
     def row(variant, seed, exit_steps=None, final=-126.0, diverged=None):
         stats = {k: [1.0, 2.0, 3.0] for k in ("critic_loss_q", "critic_loss_d",
-                 "critic_grad_norm_q", "critic_grad_norm_d", "actor_grad_norm")}  # fmt: skip
+                 "critic_grad_norm_q", "critic_grad_norm_d")}  # fmt: skip
+        stats["actor_grad_norm"] = [7.71, 1863.4, 1e6]  # the book's number style
         return {
             "variant": variant,
             "seed": seed,
@@ -868,8 +869,9 @@ def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
     assert chapter.reading_exits(five, "x")  # 5 of 6
     assert not chapter.reading_needs_more_seeds(four, "x")  # 6 seeds: read as they are
     (d,) = chapter.divergence_rows(ab)
-    assert d["NaN at iteration"] == 250 and d["parts"] == "q_critic, d_critic"
+    assert d["NaN at iteration"] == 250 and d["parts"] == "quality critic, diversity critic"
     assert d["quality critic loss"] == "1 → 2"  # the first and the last finite iteration
+    assert d["actor gradient norm"] == "7.71 → 1,860"  # not 1.86e+03
     peer = {"rows": [{"reached_exit": True, "steps_to_exit": 5e5, "final_performance": -30.0,
                       "coverage": 0.2, "wall_seconds": 600.0}]}  # fmt: skip
     assert chapter.reading_rows(ab, peer)[-1]["seeds in the exit zone"] == "1/1"

@@ -1176,6 +1176,17 @@ def reading_needs_more_seeds(ab: dict, variant: str) -> bool:
     return seeds == READING_MIN_SEEDS and reached == exits_needed(seeds) - 1
 
 
+# QD-PG's state (``QDPGState``'s fields) as a reader names its parts
+STATE_PARTS = {
+    "repertoire": "repertoire",
+    "q_critic": "quality critic",
+    "d_critic": "diversity critic",
+    "buffer": "replay buffer",
+    "archive": "novelty archive",
+    "updates": "update statistics",
+}
+
+
 def divergence_rows(ab: dict) -> list[dict[str, Any]]:
     """For every seed of the A/B that went NaN: when, in which parts, and its critics'
     losses and gradient norms over the iterations before (the first and the last)."""
@@ -1184,13 +1195,13 @@ def divergence_rows(ab: dict) -> list[dict[str, Any]]:
         if not r["diverged"]:
             continue
         before = r["statistics_before_divergence"] or {}
-        span = lambda k: " → ".join(f"{v:.3g}" for v in (before[k][0], before[k][-2]))  # noqa: E731
+        span = lambda k: " → ".join(number_text(v, 3) for v in (before[k][0], before[k][-2]))  # noqa: E731
         rows.append(
             {
                 "reading": READINGS.get(r["variant"], r["variant"]),
                 "seed": r["seed"],
                 "NaN at iteration": r["diverged"]["iteration"],
-                "parts": ", ".join(r["diverged"]["parts"]),
+                "parts": ", ".join(STATE_PARTS.get(p, p) for p in r["diverged"]["parts"]),
                 "quality critic loss": span("critic_loss_q"),
                 "diversity critic loss": span("critic_loss_d"),
                 "quality critic gradient norm": span("critic_grad_norm_q"),
