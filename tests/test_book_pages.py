@@ -55,6 +55,9 @@ def test_identifiers_are_code_long_labels_wrap_and_only_a_dump_may_scroll():
     assert 'class="qdnb-table qdnb-dump"' in styled(df, dump=True)
     assert cell_html(["num_seeds", 2.5]) == "<code>num_seeds</code>, 2.5"
     assert cell_html({"ant_omni": 1}) == "Ant-Omni: 1"  # a key the reader has a name for
+    # a Markdown code span in a cell is code, as in the text; a lone backtick stays one
+    assert cell_html("ran (no verdict at `tiny`)") == "ran (no verdict at <code>tiny</code>)"
+    assert cell_html("a ` b") == "a ` b"
 
 
 def test_a_mean_over_one_seed_has_no_spread_and_diverged_seeds_are_counted():
@@ -159,6 +162,14 @@ def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
     axs[2].plot([0, 1], ["x", "y"])
     assert plotting.degeneracies(other) == ["panel 1 draws each curve as a single point"]
     plt.close(other)
+    # a prediction drawn on the true frame's colour scale, wholly above it: one colour
+    beyond, axs = plt.subplots(1, 2, figsize=(4, 2))
+    axs[0].imshow(np.linspace(2.0, 5.0, 9).reshape(3, 3), vmin=0, vmax=1)
+    axs[1].imshow(np.linspace(0.5, 5.0, 9).reshape(3, 3), vmin=0, vmax=1)  # partly inside
+    assert plotting.degeneracies(beyond) == [
+        "panel 1 is drawn in one colour: its values (2 to 5) lie beyond its colour scale (0 to 1)"
+    ]
+    plt.close(beyond)
     shown = []
     monkeypatch.setattr("IPython.display.display", lambda obj, **kw: shown.append(kw))
     show(fig, "Losses.", "Four panels.")
@@ -287,6 +298,10 @@ def test_a_legend_entry_whose_curve_cannot_be_seen_says_why():
     ax.plot(x, 1 + x, label="NSR-ES")
     ax.plot(x, 1 + x, label="NSRA-ES")  # drawn after, exactly over NSR-ES
     ax.plot(x, 2 + x, label="ME-ES")
+    ax.plot(x, 30 + x, label="ES")
+    ax.plot(x, 30.001 + x, label="ES, again")  # a hair apart: still under it on the page
+    ax.plot(x, 10 + x, label="far apart")
+    ax.plot(x, 13 + x, label="above far apart")  # visibly apart: both seen
     ax.axhline(0.0, ls=":", label="replay floor")  # zero: a log axis cannot place it
     ax.set_yscale("log")
     ax.plot(x, 1e6 + x, label="far")
@@ -298,6 +313,10 @@ def test_a_legend_entry_whose_curve_cannot_be_seen_says_why():
         "NSR-ES (under NSRA-ES)",
         "NSRA-ES",
         "ME-ES",
+        "ES (under ES, again)",
+        "ES, again",
+        "far apart",
+        "above far apart",
         "replay floor (at 0, off the log scale)",
         "far (outside the panel)",
     ]
@@ -343,6 +362,12 @@ def test_axes_that_count_iterations_or_epochs_have_integer_ticks():
     assert all(float(t).is_integer() for t in bar.ax.get_yticks())  # not 0.00, 0.25, ...
     assert all(float(t).is_integer() for t in ax.get_xticks())
     assert not all(float(t).is_integer() for t in ax.get_yticks())  # a distance is no count
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(3, 2))  # a count of trajectories per cell
+    bar = fig.colorbar(ax.imshow([[0, 3]]), ax=ax, label="trajectories")
+    integer_axes(fig)
+    fig.canvas.draw()
+    assert all(float(t).is_integer() for t in bar.ax.get_yticks())  # not 0.5, 1.5, ...
     plt.close(fig)
 
 
@@ -390,3 +415,22 @@ def test_a_shown_figure_becomes_a_captioned_figure_of_the_page(tmp_path):
     }
     assert [o["output_type"] for o in rest.outputs] == ["stream"]
     assert rest.outputs[0]["text"] == "after the figure\n"
+
+
+def test_tick_labels_print_in_the_books_style_not_against_an_offset():
+    import matplotlib.pyplot as plt
+
+    from qdnb.plotting import plain_tick_labels
+
+    with plt.rc_context({"axes.formatter.limits": (-3, 4)}):  # set_style's
+        fig, axes = plt.subplots(1, 3, figsize=(6, 2))
+        axes[0].plot([0, 400_000], [0, 1])  # Matplotlib: 0 ... 4 and "1e5" at the end
+        axes[1].plot([1000.1, 1000.5], [0, 1])  # "+1e3", an added offset: left alone
+        axes[2].plot([0, 1], [0, 1])  # no offset: Matplotlib's labels stay
+        plain_tick_labels(fig)
+        fig.canvas.draw()
+    labels = [t.get_text() for t in axes[0].get_xticklabels() if t.get_text()]
+    assert "2·10⁵" in labels and "0" in labels and axes[0].xaxis.get_offset_text().get_text() == ""
+    for ax in axes[1:]:
+        assert type(ax.xaxis.get_major_formatter()).__name__ == "ScalarFormatter"
+    plt.close(fig)

@@ -1087,7 +1087,7 @@ PUBLISHED_POINTMAZE = paths.DATA / "published" / "paper" / "ch3_pointmaze" / "po
 READINGS = {
     "thesis-adam": "QD-PG, Adam (the A/B's base)",
     "sum": "Eq. 3.5's sum of the K distances",
-    "thesis-sgd": "QD-PG, SGD 6e-3 (Table 3.2)",
+    "thesis-sgd": "QD-PG, SGD 6·10⁻³ (Table 3.2)",
     "qdax-novelty": "QDax's novelty (mean squared distance, K = 5)",
     "qdax-greedy": "QDax's greedy actors, played",
     "exploration-noise": "the population plays with noise 0.1",
@@ -1107,7 +1107,7 @@ def _numbers(rows: list[dict], key: str) -> np.ndarray:
 
 def _steps(values: list) -> str:
     hits = [v for v in values if v is not None]
-    return ", ".join(number_text(v) for v in hits) or "never"
+    return ", ".join(number_text(v) for v in hits) or "∞"  # (never)
 
 
 def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
@@ -1129,7 +1129,8 @@ def reading_rows(ab: dict, peer: dict | None = None) -> list[dict[str, Any]]:
                 "episodes ending above the upper wall": (
                     f"{np.mean([r['share_above_upper_wall'] for r in mine]):.1%}"
                 ),
-                "coverage": f"{finite_mean(_numbers(mine, 'coverage')):.2f}",
+                # (every seed diverged: "—")
+                "coverage": number_text(finite_mean(_numbers(mine, "coverage")), 2),
                 "diverged (iteration)": ", ".join(str(r["diverged"]["iteration"]) for r in lost)
                 or "none",
                 "minutes a pair of seeds": (

@@ -108,7 +108,7 @@ def _panel_name(ax: plt.Axes, i: int) -> str:
 
 
 # an axis counting these (its label names one) has integer ticks: no "iteration 0.5"
-COUNTS = ("step", "iteration", "epoch", "generation", "evaluation")
+COUNTS = ("step", "iteration", "epoch", "generation", "evaluation", "trajectories")
 
 
 def integer_axes(fig: plt.Figure) -> None:
@@ -121,6 +121,35 @@ def integer_axes(fig: plt.Figure) -> None:
             label = axis.get_label().get_text().lower()
             if axis.get_scale() == "linear" and any(word in label for word in COUNTS):
                 axis.set_major_locator(MaxNLocator(integer=True))
+
+
+def plain_tick_labels(fig: plt.Figure) -> None:
+    """Tick labels in the book's number style (``number_text``: 20,000, 2·10⁵) on every
+    linear axis whose labels Matplotlib would print against a multiplier ("1e5" at the
+    axis's end, which readers misread); an axis whose ticks would not stay distinct at up
+    to six significant figures, or that Matplotlib labels against an added offset
+    ("+1e3"), keeps Matplotlib's labels."""
+    from matplotlib.ticker import FuncFormatter, ScalarFormatter
+
+    for ax in fig.axes:
+        ax.get_xlim(), ax.get_ylim()  # (the limits the ticks are placed in, autoscaled)
+        for axis in (ax.xaxis, ax.yaxis):
+            formatter = axis.get_major_formatter()
+            if axis.get_scale() != "linear" or type(formatter) is not ScalarFormatter:
+                continue
+            locs = [v for v in axis.get_majorticklocs() if np.isfinite(v)]
+            formatter.set_locs(locs)
+            if not formatter.get_offset() or formatter.offset:  # (an added offset: left)
+                continue
+            for digits in range(3, 7):
+                labels = [number_text(v, digits) for v in locs]
+                if len(set(labels)) == len(labels):
+                    axis.set_major_formatter(
+                        FuncFormatter(
+                            lambda v, _, d=digits: number_text(v, d).replace("-", "\u2212")
+                        )
+                    )
+                    break
 
 
 def _labels_collide(axis, renderer) -> bool:
@@ -226,9 +255,34 @@ def _unseen(line, ax: plt.Axes) -> str | None:
         return None
     if ax.get_yscale() == "log" and np.all(y <= 0):
         return f"at {number_text(float(y.max()))}, off the log scale"
+    return None if _within(_display_points(line), ax.bbox).any() else "outside the panel"
+
+
+def _display_points(line) -> np.ndarray:
     xy = line.get_transform().transform(line.get_xydata())
-    xy = xy[np.all(np.isfinite(xy), axis=1)]
-    return None if _within(xy, ax.bbox).any() else "outside the panel"
+    return xy[np.all(np.isfinite(xy), axis=1)]
+
+
+def _covers(top, under) -> bool:
+    """Whether the curve ``top``, drawn over ``under``, hides it: every vertex of
+    ``under`` lies within half ``top``'s line width of ``top``'s path, on the page."""
+    if top.get_linestyle() in ("None", "", " ") or under.get_linestyle() in ("None", "", " "):
+        return False
+    path, points = _display_points(top), _display_points(under)
+    if len(path) == 0 or len(points) == 0:
+        return False
+    points = points[:: max(1, len(points) // 500)]
+    width = top.figure.dpi / 72 * top.get_linewidth() / 2
+    if len(path) == 1:
+        return bool(np.all(np.linalg.norm(points - path[0], axis=1) <= width))
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    length = np.maximum((ab**2).sum(axis=1), 1e-12)
+    # each point's distance to each segment, then to the nearest one
+    t = np.clip(((points[:, None] - a[None]) * ab[None]).sum(-1) / length[None], 0.0, 1.0)
+    nearest = a[None] + t[..., None] * ab[None]
+    distance = np.linalg.norm(points[:, None] - nearest, axis=-1).min(axis=1)
+    return bool(np.all(distance <= width))
 
 
 def name_unseen_lines(fig: plt.Figure) -> None:
@@ -248,22 +302,16 @@ def name_unseen_lines(fig: plt.Figure) -> None:
                 continue
             why = _unseen(line, ax)
             if why is None:
-                mine = line.get_xydata()
-                above = [
-                    later.get_label()
-                    for later in lines[i + 1 :]
-                    if later.get_xydata().shape == mine.shape
-                    and np.allclose(later.get_xydata(), mine, equal_nan=True)
-                ]
+                above = [later.get_label() for later in lines[i + 1 :] if _covers(later, line)]
                 why = f"under {above[-1]}" if above else None
             if why:
                 text.set_text(f"{text.get_text()} ({why})")
 
 
 def degeneracies(fig: plt.Figure) -> list[str]:
-    """What a reader would see as broken in ``fig``: a uniform image (its values span
-    less than ``FLAT`` of its colour scale), a panel whose data are all NaN, a colour
-    scale with one value, a curve of a single point."""
+    """What a reader would see as broken in ``fig``: a uniform image (its values, as
+    drawn, clipped to its colour scale, span less than ``FLAT`` of that scale), a panel
+    whose data are all NaN, a colour scale with one value, a curve of a single point."""
     found = []
     panels = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
     for i, ax in enumerate(panels):
@@ -278,6 +326,16 @@ def degeneracies(fig: plt.Figure) -> list[str]:
             im.autoscale_None()  # the colour scale it is drawn with, as drawing sets it
             scale = float(im.norm.vmax - im.norm.vmin)
             span = float(values.max() - values.min())
+            if scale > 0 and span > FLAT * scale:  # as drawn: beyond the scale, its end colours
+                shown = np.clip(values, im.norm.vmin, im.norm.vmax)
+                if float(shown.max() - shown.min()) <= FLAT * scale:
+                    found.append(
+                        f"{name} is drawn in one colour: its values "
+                        f"({number_text(values.min(), 3)} to {number_text(values.max(), 3)}) lie "
+                        f"beyond its colour scale ({number_text(im.norm.vmin, 3)} to "
+                        f"{number_text(im.norm.vmax, 3)})"
+                    )
+                continue
             if span <= FLAT * (scale if scale > 0 else abs(float(values.max()))):
                 found.append(
                     f"{name} is a uniform image ({float(values.mean()):.3g}"
@@ -323,7 +381,8 @@ def show(
     a reader who cannot see it) and ``name``, a label other text can refer to.  In
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
     shrunk into the column, its fonts would fall below 9 points.  Axes that count
-    (``integer_axes``) get integer ticks, tick labels that collide are thinned
+    (``integer_axes``) get integer ticks, ticks print without an offset
+    (``plain_tick_labels``), tick labels that collide are thinned
     (``thin_ticks``), a legend entry whose curve cannot be seen says why
     (``name_unseen_lines``), and legends move off the data (``clear_legends``).  A degenerate figure
     (``degeneracies``) is never shown silently: its caption says what is degenerate and
@@ -344,6 +403,7 @@ def show(
         plt.close(fig)
         raise ValueError("a book figure needs a caption and an alt text")
     integer_axes(fig)
+    plain_tick_labels(fig)
     thin_ticks(fig)
     name_unseen_lines(fig)
     clear_legends(fig)
@@ -526,15 +586,25 @@ def reward_arrows(ax: plt.Axes, goal, low, high, n: int = 15) -> None:
     ax.quiver(xs, ys, d[0], d[1], color="tab:blue", alpha=0.8, scale=n * 1.4, width=0.004)
 
 
+# the colour bar of ``positions_over_time``
+TRAINING_SHARE = "share of training done (0: start, 1: end)"
+
+
 def positions_over_time(ax: plt.Axes, descriptors: np.ndarray, title: str):
     """Every evaluated policy's final position ``(iterations, batch, 2)``, coloured by
-    iteration (Figure 3.8); returns the scatter for a colour bar."""
-    it = np.broadcast_to(np.arange(descriptors.shape[0])[:, None], descriptors.shape[:2])
+    when in training it was evaluated, from 0 (the first iteration) to 1 (the last), so
+    panels of runs with different iteration counts share one colour bar (Figure 3.8);
+    returns the scatter for that colour bar (``TRAINING_SHARE`` is its label)."""
+    iterations = descriptors.shape[0]
+    share = np.arange(iterations) / max(iterations - 1, 1)
+    share = np.broadcast_to(share[:, None], descriptors.shape[:2])
     sc = ax.scatter(
         descriptors[..., 0].ravel(),
         descriptors[..., 1].ravel(),
-        c=it.ravel(),
+        c=share.ravel(),
         cmap="cool",
+        vmin=0.0,
+        vmax=1.0,
         s=4,
         zorder=3,
     )

@@ -66,7 +66,14 @@ def cell_html(value: Any, digits: int = DIGITS) -> str:
     if isinstance(value, (list, tuple)) and value:
         return ", ".join(cell_html(v, digits) for v in value)
     if isinstance(value, str):
-        return _identifier_html(cell_text(value, digits))
+        # Markdown's code spans (`tiny`) in code type, as the page's text shows them
+        parts = cell_text(value, digits).split("`")
+        if len(parts) % 2 == 0:  # an odd number of backticks: no spans
+            return _identifier_html("`".join(parts))
+        return "".join(
+            f"<code>{html.escape(part)}</code>" if i % 2 else _identifier_html(part)
+            for i, part in enumerate(parts)
+        )
     return html.escape(cell_text(value, digits))
 
 
