@@ -34,7 +34,7 @@ def test_the_scorecard_lists_each_claim_by_scale_with_its_numbers(runs):
     assert "*no claim recorded yet*" in table and "[Ch. 4: the QDT](chapters/ch4_qdt)" in table
     tally = scorecard.tally(scorecard.summaries())
     assert "**`tiny`**" in tally and "2 claim checks ran" in tally and "no verdict" in tally
-    assert "1 of 1 claims hold, 0 fail, 0 cannot show" in tally  # small
+    assert "1 of 1 claim holds, 0 fail, 0 cannot show" in tally  # small
     assert "**`paper`**: not run" in tally
 
 

@@ -57,7 +57,7 @@ FLT = "Chapter 5 · Deep Learning for Diversity Search in Continuous Cellular Au
 CHAPTERS: tuple[Chapter, ...] = (
     Chapter(
         "ch2_primer",
-        "Chapters 1-2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
+        "Chapters 1–2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
         "Ch. 1–2: the deceptive maze",
         BACKGROUND,
     ),

@@ -191,10 +191,12 @@ def tally(by_scale: dict[str, dict[str, dict | None]]) -> str:
                 + (f", {len(stale)} stale (their code or config changed since)" if stale else "")
             )
         origin = "; " + "; ".join(sources) if sources else ", all computed by this build"
+        claims = "claim holds" if len(records) == 1 else "claims hold"
+        pages = "page has" if len(ran) == 1 else "pages have"
         out.append(
-            f"- **`{s}`** ({SCALE_MEANING[s]}): {counts[HOLDS]} of {len(records)} claims hold, "
+            f"- **`{s}`** ({SCALE_MEANING[s]}): {counts[HOLDS]} of {len(records)} {claims}, "
             f"{counts[FAILS]} fail, {counts[CANNOT_SHOW]} cannot show; {len(ran)} of "
-            f"{len(runs)} pages have results{origin}."
+            f"{len(runs)} {pages} results{origin}."
         )
     return "\n".join(out) + "\n"
 
@@ -221,7 +223,8 @@ def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
         return "\n".join(lines)
     devices = summary.get("devices") or {}
     device = (
-        f"{devices.get('count')} {devices.get('platform', '').upper()} device(s)"
+        f"{devices.get('count')} {devices.get('platform', '').upper()} "
+        + ("device" if devices.get("count") == 1 else "devices")
         if devices
         else summary.get("device", "unknown device")
     )
