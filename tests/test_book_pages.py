@@ -191,12 +191,13 @@ def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
 def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
     from qdnb.core.names import majority_text, number_text, seeds_text
 
-    assert [cell_text(v) for v in (0.123456, 123456.7, 8.4e7, 2e-5, 12, 120_000)] == [
+    assert [cell_text(v) for v in (0.123456, 123456.7, 8.4e7, 2e-5, 12, 8000, 120_000)] == [
         "0.1235",
         "1.235·10⁵",
         "8.4·10⁷",
         "2·10⁻⁵",
         "12",
+        "8,000",
         "120,000",
     ]
     assert cell_text(np.inf) == "∞" and cell_text([1.0, 2.5]) == "1, 2.5"

@@ -26,6 +26,9 @@ READER_NAMES = {
     "copy_previous": "previous frame copied",
     "stoch": "stochastic mix",
     "stoch_fresh": "stochastic mix, fresh key",
+    # optimisers, as papers name them
+    "adam": "Adam",
+    "sgd": "SGD",
 }
 
 # a word with an underscore is an identifier or a path (a config's field, a notebook's

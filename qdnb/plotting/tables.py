@@ -37,7 +37,7 @@ def cell_text(value: Any, digits: int = DIGITS) -> str:
     if isinstance(value, (bool, np.bool_)):
         return "✓" if value else "✗"
     if isinstance(value, numbers.Integral):
-        return f"{int(value):,}" if abs(int(value)) >= 10_000 else str(int(value))
+        return f"{int(value):,}"  # 8,000 beside 20,000
     if isinstance(value, numbers.Real):  # NaN as MISSING, ∞ for an infinity
         return number_text(value, digits)
     if isinstance(value, dict):
