@@ -435,3 +435,26 @@ def test_tick_labels_print_in_the_books_style_not_against_an_offset():
     for ax in axes[1:]:
         assert type(ax.xaxis.get_major_formatter()).__name__ == "ScalarFormatter"
     plt.close(fig)
+
+
+def test_a_log_axis_shorter_than_a_decade_gets_labelled_ticks():
+    import matplotlib.pyplot as plt
+
+    from qdnb.plotting import log_ticks
+
+    fig, axes = plt.subplots(1, 2, figsize=(6, 2))
+    axes[0].plot([2_000, 30_000], [0, 1])  # one power of ten (10⁴) inside: one label
+    axes[0].set_xscale("log")
+    axes[1].plot([1, 1e6], [0, 1])  # six decades: Matplotlib's ticks stay
+    axes[1].set_xscale("log")
+    log_ticks(fig)
+    fig.canvas.draw()
+    low, high = axes[0].get_xlim()
+    labels = [
+        t.get_text() for t, v in zip(axes[0].get_xticklabels(), axes[0].get_xticks())
+        if low <= v <= high
+    ]  # fmt: skip
+    assert labels == ["2,000", "5,000", "10,000", "20,000"]
+    assert type(axes[1].xaxis.get_major_locator()).__name__ == "LogLocator"
+    assert axes[1].xaxis.get_major_locator()._subs.tolist() == [1.0]
+    plt.close(fig)

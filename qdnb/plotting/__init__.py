@@ -152,6 +152,28 @@ def plain_tick_labels(fig: plt.Figure) -> None:
                     break
 
 
+def log_ticks(fig: plt.Figure) -> None:
+    """Readable ticks on every log axis of ``fig`` that spans less than a decade or two,
+    where Matplotlib labels one power of ten or none: ticks at 1, 2 and 5 times the powers
+    of ten, labelled in the book's style (``number_text``), the minor ones unlabelled."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    for ax in fig.axes:
+        ax.get_xlim(), ax.get_ylim()
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() != "log":
+                continue
+            low, high = sorted(axis.get_view_interval())
+            majors = [v for v in axis.get_majorticklocs() if low <= v <= high]
+            if len(majors) >= 2:
+                continue
+            axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(
+                FuncFormatter(lambda v, _: number_text(v, 2).replace("-", "\u2212"))
+            )
+            axis.set_minor_formatter(NullFormatter())
+
+
 def _labels_collide(axis, renderer) -> bool:
     """Whether two of ``axis``'s visible tick labels overlap or come within 2 points of
     each other (labels that touch read as one number)."""
@@ -382,7 +404,8 @@ def show(
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
     shrunk into the column, its fonts would fall below 9 points.  Axes that count
     (``integer_axes``) get integer ticks, ticks print without an offset
-    (``plain_tick_labels``), tick labels that collide are thinned
+    (``plain_tick_labels``), a short log axis gets labelled ticks (``log_ticks``), tick
+    labels that collide are thinned
     (``thin_ticks``), a legend entry whose curve cannot be seen says why
     (``name_unseen_lines``), and legends move off the data (``clear_legends``).  A degenerate figure
     (``degeneracies``) is never shown silently: its caption says what is degenerate and
@@ -404,6 +427,7 @@ def show(
         raise ValueError("a book figure needs a caption and an alt text")
     integer_axes(fig)
     plain_tick_labels(fig)
+    log_ticks(fig)
     thin_ticks(fig)
     name_unseen_lines(fig)
     clear_legends(fig)
