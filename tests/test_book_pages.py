@@ -170,6 +170,14 @@ def test_degenerate_figures_are_found_and_never_shown_silently(monkeypatch):
         "panel 1 is drawn in one colour: its values (2 to 5) lie beyond its colour scale (0 to 1)"
     ]
     plt.close(beyond)
+    beyond, axs = plt.subplots(1, 3, figsize=(4, 2))
+    for ax in axs:
+        ax.imshow(np.linspace(2.0, 5.0, 9).reshape(3, 3), vmin=0, vmax=1)
+    assert plotting.degeneracies(beyond) == [
+        "panels 1, 2 and 3 are drawn in one colour: their values lie beyond their colour "
+        "scales (2 to 5 against 0 to 1 in the first)"
+    ]
+    plt.close(beyond)
     shown = []
     monkeypatch.setattr("IPython.display.display", lambda obj, **kw: shown.append(kw))
     show(fig, "Losses.", "Four panels.")

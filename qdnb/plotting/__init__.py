@@ -334,7 +334,7 @@ def degeneracies(fig: plt.Figure) -> list[str]:
     """What a reader would see as broken in ``fig``: a uniform image (its values, as
     drawn, clipped to its colour scale, span less than ``FLAT`` of that scale), a panel
     whose data are all NaN, a colour scale with one value, a curve of a single point."""
-    found = []
+    found, beyond = [], []
     panels = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
     for i, ax in enumerate(panels):
         name = _panel_name(ax, i)
@@ -351,11 +351,12 @@ def degeneracies(fig: plt.Figure) -> list[str]:
             if scale > 0 and span > FLAT * scale:  # as drawn: beyond the scale, its end colours
                 shown = np.clip(values, im.norm.vmin, im.norm.vmax)
                 if float(shown.max() - shown.min()) <= FLAT * scale:
-                    found.append(
-                        f"{name} is drawn in one colour: its values "
-                        f"({number_text(values.min(), 3)} to {number_text(values.max(), 3)}) lie "
-                        f"beyond its colour scale ({number_text(im.norm.vmin, 3)} to "
-                        f"{number_text(im.norm.vmax, 3)})"
+                    beyond.append(
+                        (
+                            name,
+                            f"{number_text(values.min(), 3)} to {number_text(values.max(), 3)}",
+                            f"{number_text(im.norm.vmin, 3)} to {number_text(im.norm.vmax, 3)}",
+                        )
                     )
                 continue
             if span <= FLAT * (scale if scale > 0 else abs(float(values.max()))):
@@ -374,6 +375,19 @@ def degeneracies(fig: plt.Figure) -> list[str]:
                 found.append(f"{name} has no finite value to draw")
             elif max(finite) == 1:
                 found.append(f"{name} draws each curve as a single point")
+    if len(beyond) == 1:
+        name, values, scale = beyond[0]
+        found.append(
+            f"{name} is drawn in one colour: its values ({values}) lie beyond its colour "
+            f"scale ({scale})"
+        )
+    elif beyond:  # one entry for them all, the first as the example
+        names = [b[0].split(" (")[0] for b in beyond]
+        found.append(
+            f"panels {', '.join(n.removeprefix('panel ') for n in names[:-1])} and "
+            f"{names[-1].removeprefix('panel ')} are drawn in one colour: their values lie "
+            f"beyond their colour scales ({beyond[0][1]} against {beyond[0][2]} in the first)"
+        )
     for ax in fig.axes:
         bar = getattr(ax, "_colorbar", None)
         values = None if bar is None else _finite(bar.mappable.get_array())
