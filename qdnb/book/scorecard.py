@@ -191,8 +191,9 @@ def tally(by_scale: dict[str, dict[str, dict | None]]) -> str:
                 + (f", {len(stale)} stale (their code or config changed since)" if stale else "")
             )
         origin = "; " + "; ".join(sources) if sources else ", all computed by this build"
+        # (agreeing with the total: "0 of 1 claim holds", "1 of 7 pages have")
         claims = "claim holds" if len(records) == 1 else "claims hold"
-        pages = "page has" if len(ran) == 1 else "pages have"
+        pages = "page has" if len(runs) == 1 else "pages have"
         out.append(
             f"- **`{s}`** ({SCALE_MEANING[s]}): {counts[HOLDS]} of {len(records)} {claims}, "
             f"{counts[FAILS]} fail, {counts[CANNOT_SHOW]} cannot show; {len(ran)} of "
