@@ -309,8 +309,9 @@ def _covers(top, under) -> bool:
 
 def name_unseen_lines(fig: plt.Figure) -> None:
     """A legend entry whose curve a reader cannot find says why: the curve lies off the
-    panel (``_unseen``: "replay floor (at 0, off the log scale)") or exactly under a curve
-    drawn after it ("NSR-ES (under NSRA-ES)")."""
+    panel (``_unseen``: "replay floor (at 0, off the log scale)") or under a curve drawn
+    after it, within half that curve's line width (``_covers``: "NSR-ES (under
+    NSRA-ES)")."""
     for ax in fig.axes:
         legend = ax.get_legend()
         if legend is None:
@@ -417,13 +418,13 @@ def show(
     a reader who cannot see it) and ``name``, a label other text can refer to.  In
     Jupyter it shows as any figure.  A figure wider than ``COLUMN_INCHES`` is refused:
     shrunk into the column, its fonts would fall below 9 points.  Axes that count
-    (``integer_axes``) get integer ticks, ticks print without an offset
+    (``integer_axes``) get integer ticks, ticks print without a multiplier
     (``plain_tick_labels``), a short log axis gets labelled ticks (``log_ticks``), tick
-    labels that collide are thinned
-    (``thin_ticks``), a legend entry whose curve cannot be seen says why
-    (``name_unseen_lines``), and legends move off the data (``clear_legends``).  A degenerate figure
-    (``degeneracies``) is never shown silently: its caption says what is degenerate and
-    ``note`` why (without a note the book's build refuses the page)."""
+    labels that collide are thinned (``thin_ticks``), a legend entry whose curve cannot be
+    seen says why (``name_unseen_lines``), and legends move off the data
+    (``clear_legends``).  A degenerate figure (``degeneracies``) is never shown
+    silently: its caption says what is degenerate and ``note`` why (without a note the
+    book's build refuses the page)."""
     import base64
     import io
 
