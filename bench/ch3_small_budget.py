@@ -81,7 +81,7 @@ def check(run_dir: Path) -> None:
     )
     chosen = [c["chosen_steps"] for c in checks]
     out["chosen_steps_by_the_pages"] = None if None in chosen else min(chosen)
-    write_result(RESULTS, out)  # (the record's own device, commit and date stay)
+    write_result(RESULTS, out, keep_provenance=True)  # (the measurement's stays)
     print(json.dumps({"chosen_steps": out["chosen_steps_by_the_pages"]}), f"wrote {RESULTS}")
 
 

@@ -52,7 +52,6 @@ import jax
 import numpy as np
 from qdpg_sweep import summarise
 
-from qdnb.book.provenance import RESULT_PROVENANCE as PROVENANCE
 from qdnb.book.provenance import git_sha, write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import build_algorithms, make_task_env, run_method
@@ -162,7 +161,7 @@ def main() -> None:
             commit=commit,
         )
         runs[name] = entry
-        write_result(args.out, {k: v for k, v in result.items() if k not in PROVENANCE})
+        write_result(args.out, result)
         print(name, {k: entry[k] for k in ("reached_exit", "final_performance", "seconds")})
 
     for name, overrides in VARIANTS.items():
@@ -177,7 +176,7 @@ def main() -> None:
         result["table_3_2_ratio"] = table_3_2_ratio(
             cfg, dataclasses.replace(base, coupling="thesis")
         )
-    write_result(args.out, {k: v for k, v in result.items() if k not in PROVENANCE})
+    write_result(args.out, result)
 
 
 if __name__ == "__main__":

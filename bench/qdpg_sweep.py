@@ -35,7 +35,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from qdnb.book.provenance import RESULT_PROVENANCE as PROVENANCE
 from qdnb.book.provenance import git_sha, write_result
 from qdnb.book.registry import config
 from qdnb.chapters.ch3_qdpg import run_environment, steps_to_exit
@@ -173,7 +172,7 @@ def main() -> None:
             runs.setdefault(name, {})[method] = entry
             out["selected"] = select(runs, args.qdpg_budget_seconds)
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            write_result(args.out, {k: v for k, v in out.items() if k not in PROVENANCE})
+            write_result(args.out, out)
             print(
                 name,
                 method,

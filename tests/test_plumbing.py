@@ -108,10 +108,12 @@ def test_a_bench_result_carries_its_provenance_and_keeps_its_own(tmp_path, monke
     assert record == written and list(record)[: len(RESULT_PROVENANCE)] == list(RESULT_PROVENANCE)
     assert record["commit"] == "abc1234" and record["rate"] == 2.5 and "jax" in record["versions"]
     assert "CPU cores" in record["device"] and record["date"].endswith("UTC")
-    # a record that gives a provenance key itself (a resumed run's first commit) keeps it
-    again = write_result(path, {**record, "rate": 3.0})
-    assert again["commit"] == "abc1234" and again["date"] == record["date"]
+    # a record that gives a provenance key itself keeps it when asked (a check appended to
+    # a measurement); by default a rewrite records the run that wrote it
     monkeypatch.setenv("QDNB_GIT_SHA", "def5678")
+    again = write_result(path, {**record, "rate": 3.0}, keep_provenance=True)
+    assert again["commit"] == "abc1234" and again["date"] == record["date"]
+    assert write_result(path, {**record, "rate": 3.0})["commit"] == "def5678"
     assert write_result(path, {"rate": 3.0})["commit"] == "def5678"
 
 

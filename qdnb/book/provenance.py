@@ -38,24 +38,29 @@ def versions() -> dict[str, str]:
 RESULT_PROVENANCE = ("device", "commit", "date", "versions")
 
 
-def write_result(path: Path, record: dict[str, Any]) -> dict[str, Any]:
+def write_result(path: Path, record: dict[str, Any], keep_provenance: bool = False) -> dict:
     """Write a ``bench/`` script's result file: its ``record`` (the question, the settings
     and the answers) after the provenance every result carries, ``RESULT_PROVENANCE``: the
     device (processor included), the commit of the code that ran, the UTC date and time,
-    and the packages' versions.  A key the record gives itself wins (a run that resumed
-    keeps the commit it started from).  Written atomically, so a reader never meets half a
-    file; rewritten as often as a resumable script finishes a part.  Returns what it
-    wrote."""
-    full = {
+    and the packages' versions, as of this write (a resumable script that reloads its file
+    and adds a part records the run that wrote last).  With ``keep_provenance`` the
+    record's own provenance stays where it has one (a check appended to a measurement
+    leaves the measurement's).  Written atomically, so a reader never meets half a file.
+    Returns what it wrote."""
+    fresh = {
         "device": device(),
         "commit": git_sha(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "versions": versions(),
-        **record,
     }
+    full = {**fresh, **record} if keep_provenance else {**fresh, **_without_provenance(record)}
     full = to_jsonable(full)
     atomic_write_bytes(Path(path), (json.dumps(full, indent=1) + "\n").encode())
     return full
+
+
+def _without_provenance(record: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in record.items() if k not in RESULT_PROVENANCE}
 
 
 def processor() -> str:
