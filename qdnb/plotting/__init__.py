@@ -123,13 +123,25 @@ def integer_axes(fig: plt.Figure) -> None:
                 axis.set_major_locator(MaxNLocator(integer=True))
 
 
+def _book_ticks(digits: int):
+    """A tick formatter in the book's number style (``number_text``), minus signs typeset."""
+    from matplotlib.ticker import FuncFormatter
+
+    return FuncFormatter(lambda v, _: number_text(v, digits).replace("-", "\u2212"))
+
+
+def _drawn_as_line(line) -> bool:
+    """Whether ``line`` is drawn as a line (not markers alone)."""
+    return line.get_linestyle() not in ("None", "", " ")
+
+
 def plain_tick_labels(fig: plt.Figure) -> None:
     """Tick labels in the book's number style (``number_text``: 20,000, 2·10⁵) on every
     linear axis whose labels Matplotlib would print against a multiplier ("1e5" at the
     axis's end, which readers misread); an axis whose ticks would not stay distinct at up
     to six significant figures, or that Matplotlib labels against an added offset
     ("+1e3"), keeps Matplotlib's labels."""
-    from matplotlib.ticker import FuncFormatter, ScalarFormatter
+    from matplotlib.ticker import ScalarFormatter
 
     for ax in fig.axes:
         ax.get_xlim(), ax.get_ylim()  # (the limits the ticks are placed in, autoscaled)
@@ -144,11 +156,7 @@ def plain_tick_labels(fig: plt.Figure) -> None:
             for digits in range(3, 7):
                 labels = [number_text(v, digits) for v in locs]
                 if len(set(labels)) == len(labels):
-                    axis.set_major_formatter(
-                        FuncFormatter(
-                            lambda v, _, d=digits: number_text(v, d).replace("-", "\u2212")
-                        )
-                    )
+                    axis.set_major_formatter(_book_ticks(digits))
                     break
 
 
@@ -156,7 +164,7 @@ def log_ticks(fig: plt.Figure) -> None:
     """Readable ticks on every log axis of ``fig`` that spans less than a decade or two,
     where Matplotlib labels one power of ten or none: ticks at 1, 2 and 5 times the powers
     of ten, labelled in the book's style (``number_text``), the minor ones unlabelled."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    from matplotlib.ticker import LogLocator, NullFormatter
 
     for ax in fig.axes:
         ax.get_xlim(), ax.get_ylim()
@@ -168,9 +176,7 @@ def log_ticks(fig: plt.Figure) -> None:
             if len(majors) >= 2:
                 continue
             axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-            axis.set_major_formatter(
-                FuncFormatter(lambda v, _: number_text(v, 2).replace("-", "\u2212"))
-            )
+            axis.set_major_formatter(_book_ticks(2))
             axis.set_minor_formatter(NullFormatter())
 
 
@@ -213,6 +219,12 @@ def _within(points: np.ndarray, box) -> np.ndarray:
     return (x >= box.x0) & (x <= box.x1) & (y >= box.y0) & (y <= box.y1)
 
 
+def _display_points(line) -> np.ndarray:
+    """A curve's finite vertices in display coordinates (pixels on the page)."""
+    xy = line.get_transform().transform(line.get_xydata())
+    return xy[np.all(np.isfinite(xy), axis=1)]
+
+
 def _data_points(ax: plt.Axes) -> np.ndarray:
     """The display coordinates of what ``ax`` draws as data: its curves' vertices, its
     scatters' points and its arrows' tails inside the panel (bands and images are
@@ -220,7 +232,7 @@ def _data_points(ax: plt.Axes) -> np.ndarray:
     from matplotlib.collections import PathCollection
     from matplotlib.quiver import Quiver
 
-    points = [line.get_transform().transform(line.get_xydata()) for line in ax.lines]
+    points = [_display_points(line) for line in ax.lines]
     points += [
         c.get_offset_transform().transform(np.asarray(c.get_offsets(), dtype=float))
         for c in ax.collections
@@ -280,21 +292,18 @@ def _unseen(line, ax: plt.Axes) -> str | None:
     return None if _within(_display_points(line), ax.bbox).any() else "outside the panel"
 
 
-def _display_points(line) -> np.ndarray:
-    xy = line.get_transform().transform(line.get_xydata())
-    return xy[np.all(np.isfinite(xy), axis=1)]
-
-
 def _covers(top, under) -> bool:
     """Whether the curve ``top``, drawn over ``under``, hides it: every vertex of
     ``under`` lies within half ``top``'s line width of ``top``'s path, on the page."""
-    if top.get_linestyle() in ("None", "", " ") or under.get_linestyle() in ("None", "", " "):
+    if not (_drawn_as_line(top) and _drawn_as_line(under)):
         return False
     path, points = _display_points(top), _display_points(under)
     if len(path) == 0 or len(points) == 0:
         return False
-    points = points[:: max(1, len(points) // 500)]
     width = top.figure.dpi / 72 * top.get_linewidth() / 2
+    if np.any(points.min(0) < path.min(0) - width) or np.any(points.max(0) > path.max(0) + width):
+        return False  # (outside the box around top's path: apart, without the distances)
+    points = points[:: max(1, len(points) // 500)]
     if len(path) == 1:
         return bool(np.all(np.linalg.norm(points - path[0], axis=1) <= width))
     a, b = path[:-1], path[1:]
@@ -368,7 +377,7 @@ def degeneracies(fig: plt.Figure) -> list[str]:
                 )
         # the panel's curves (lines drawn as lines, not markers alone), when it has
         # nothing else (an image, a scatter, a band) to show
-        curves = [line for line in ax.lines if line.get_linestyle() not in ("None", "", " ")]
+        curves = [line for line in ax.lines if _drawn_as_line(line)]
         values = [_finite(c.get_ydata()) for c in curves]
         finite = [None if v is None else v.size for v in values]
         if curves and not ax.images and not ax.collections and None not in finite:

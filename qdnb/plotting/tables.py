@@ -67,9 +67,10 @@ def cell_html(value: Any, digits: int = DIGITS) -> str:
         return ", ".join(cell_html(v, digits) for v in value)
     if isinstance(value, str):
         # Markdown's code spans (`tiny`) in code type, as the page's text shows them
-        parts = cell_text(value, digits).split("`")
+        text = cell_text(value, digits)
+        parts = text.split("`")
         if len(parts) % 2 == 0:  # an odd number of backticks: no spans
-            return _identifier_html("`".join(parts))
+            return _identifier_html(text)
         return "".join(
             f"<code>{html.escape(part)}</code>" if i % 2 else _identifier_html(part)
             for i, part in enumerate(parts)
