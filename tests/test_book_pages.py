@@ -107,6 +107,18 @@ def test_the_sidebar_groups_the_pages_by_the_thesiss_chapters():
     files = [c["file"] for p in toc["parts"] for c in p["chapters"]]
     assert files[-3:] == ["reproducing", "paper_scale", "references"]
     assert len(files) == len(registry.CHAPTERS) + len(registry.APPENDICES) + 3
+    # one name per page everywhere: the registry's title (the status table, the paper page)
+    # is the notebook's heading (the page and the sidebar)
+    for chapter in registry.CHAPTERS:
+        nb = nbformat.read(chapter.notebook, as_version=4)
+        heading = next(
+            line[2:]
+            for c in nb.cells
+            if c.cell_type == "markdown"
+            for line in c.source.splitlines()
+            if line.startswith("# ")
+        )
+        assert heading == chapter.title, chapter.name
 
 
 def test_cells_tagged_for_the_appendix_leave_the_page_for_their_chapters_appendix():
@@ -223,6 +235,21 @@ def test_numbers_print_in_one_style_to_four_significant_digits_in_tables():
     assert number_text(float("inf")) == "∞" and number_text(float("nan")) == "—"
     assert [seeds_text(1), seeds_text(4), seeds_text(2, "goal")] == ["1 seed", "4 seeds", "2 goals"]
     assert majority_text(1) == "on its one seed"
+    from qdnb.core.names import over_seeds_text
+
+    assert (
+        over_seeds_text(1) == "one seed" and over_seeds_text(3) == "mean over 3 seeds, range shaded"
+    )
+    assert over_seeds_text(2, "") == "mean over 2 seeds"
+    # a recorded device in a reader's words; text in no known form is left as it is
+    from qdnb.core.names import machine_text
+
+    assert machine_text("cpu: cpu x2 (2 CPU cores, AMD EPYC)") == "2 CPU cores (AMD EPYC)"
+    assert machine_text("cpu: cpu x1 (2 CPU cores)") == "2 CPU cores"
+    assert machine_text("gpu: NVIDIA H100 x1 (16 CPU cores, Xeon)") == (
+        "1 NVIDIA H100 (beside 16 CPU cores, Xeon)"
+    )
+    assert machine_text("a laptop") == "a laptop"
     assert majority_text(3) == "on the mean over 3 seeds and on most of them"
 
 

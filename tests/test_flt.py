@@ -388,6 +388,12 @@ def test_pick_system_keeps_the_first_system_meeting_every_criterion():
     assert set(choice.statistics) == {"occupancy", "diversity", "change", "replay", "sensitivity"}
     assert np.all(choice.statistics["replay"] == 0.0)  # deterministic mixing: replays are identical
     assert all(v.shape == (3,) for v in choice.statistics.values())
+    # the P0 comparison measures the kept system on the probes it was chosen on: the row of
+    # the world's own rule is the kept candidate's column of the candidates' table
+    p0 = chapter.compare_p0(choice, WORLD, jax.random.PRNGKey(1), probes=2, examples=1)
+    own = p0.statistics[WORLD.p0]
+    assert own == pytest.approx({k: float(v[choice.index]) for k, v in choice.statistics.items()})
+    assert set(p0.statistics) == set(chapter.P0_RULES) and p0.finals["cell"].shape[0] == 1
     settled = choice.statistics["change"]
     # only "settled" can fail: the first system settled below a threshold between the candidates'
     # values

@@ -91,7 +91,8 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
     (html / "words.html").write_text(
         PAGE.format(
             head="",
-            output="<p>set num_seeds to 4 (ant_omni): 1.2 ± 0.0</p><figcaption>Loss. "
+            output="<p>set num_seeds to 4 (ant_omni): 1.2 ± 0.0, 5.25e+05 steps on a 32x32 "
+            "grid (a 10·10⁶ step run, lr 3·10⁻⁴, Conv-3x3 stays)</p><figcaption>Loss. "
             "<strong>Degenerate at this scale:</strong> panel 1 is a constant image (0). "
             "(no reason given)</figcaption>",
         )
@@ -110,6 +111,10 @@ def test_the_static_checks_find_raw_math_pandas_indices_cut_cells_and_bars(tmp_p
     )
     assert any("words.html: an identifier in the text" in p and "'ant_omni'" in p for p in problems)
     assert any("words.html: a zero spread" in p and "1.2 ± 0.0" in p for p in problems)
+    assert [p.split(": ")[1] for p in problems if "not as the book writes it" in p] == [
+        "a number in e-notation, not as the book writes it",
+        "a size as NxN, not as the book writes it",
+    ]
     assert any("words.html: a degenerate figure without a note" in p for p in problems)
     assert any("raw_math.html: raw LaTeX" in p and "$10^6$" in p for p in problems)
     assert any("progress_bar.html: a progress bar" in p for p in problems)

@@ -93,6 +93,10 @@ SNAKE_CASE = re.compile(r"(?<![\w/.-])[a-z][a-z0-9]*(?:_[a-z0-9]+)+\b")
 # a zero spread printed with decimals, as one seed gives it: "± 0.0" (the thesis's own
 # "± 0" stays: it is the thesis's number)
 ZERO_SPREAD = re.compile(r"±\s*0\.0+(?![\d.])")
+# a number as a program prints it, not as the book writes it (``number_text``): "5.25e+05",
+# "1e6"; and a grid's size with a letter x ("32x32": the book writes 32×32)
+E_NOTATION = re.compile(r"(?<![\w.·-])-?\d+(?:\.\d+)?[eE][+-]?\d+(?![\w.])")
+LETTER_X = re.compile(r"(?<![\w.-])\d+x\d+(?![\w.])")
 
 
 class _ReaderText(HTMLParser):
@@ -193,6 +197,10 @@ def static_problems(html_dir: Path) -> list[str]:
             problems.append(
                 f"{name}: a degenerate figure without a note saying why: {m.group(1).strip()!r}"
             )
+        for rx, what in ((E_NOTATION, "a number in e-notation"), (LETTER_X, "a size as NxN")):
+            for m in rx.finditer(text):
+                context = text[max(0, m.start() - 40) : m.end()].split("  ")[-1].strip()
+                problems.append(f"{name}: {what}, not as the book writes it: {context!r}")
         for m in ZERO_SPREAD.finditer(text):
             context = text[max(0, m.start() - 40) : m.end()].split("  ")[-1].strip()
             problems.append(f"{name}: a zero spread (one seed?): {context!r}")

@@ -8,7 +8,7 @@ from typing import Any
 
 from qdnb.book import publish, registry
 from qdnb.core import paths
-from qdnb.core.names import markdown_words
+from qdnb.core.names import machine_text, markdown_words
 
 
 def gigabytes(n: float) -> str:
@@ -161,8 +161,9 @@ def page_markdown(report: dict[str, Any] | None, published: list[dict[str, str]]
         "## What each chapter needs",
         "",
         f"Dry run at `{report['scale']}` on {first['cpu_count']} CPU cores "
-        f"({first['device']}, {where}); {report['wall_s'] / 60:.0f} minutes for the notebooks "
-        "below (each notebook's machine, code version and date are in its section).",
+        f"({machine_text(first['device'])}, {where}); {report['wall_s'] / 60:.0f} minutes "
+        "for the notebooks below (each notebook's machine, code version and date are in its "
+        "section).",
         "",
         markdown_table([{k: v for k, v in r.items() if k != "command"} for r in rows]),
         "",

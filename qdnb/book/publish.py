@@ -29,6 +29,7 @@ from qdnb.book import registry
 from qdnb.core import paths
 from qdnb.core.config import check_scale
 from qdnb.core.io import atomic_write_json
+from qdnb.core.names import machine_text
 
 PUBLISHED = paths.DATA / "published"
 MANIFEST = "manifest.json"
@@ -216,7 +217,7 @@ def banner(record: dict[str, Any]) -> str:
     device = (
         f"{devices.get('count')} x {devices.get('kind')} ({devices.get('platform')})"
         if devices
-        else run.get("device", "unknown")
+        else machine_text(run.get("device", "unknown"))
     )
     return (
         "```{admonition} A published run, imported: not computed by this build\n"

@@ -25,7 +25,7 @@ from qdnb.core.config import check_scale
 @dataclass(frozen=True)
 class Chapter:
     name: str  # the notebook's stem and the chapter module's name
-    title: str
+    title: str  # the page's title, its notebook's heading (the sidebar's entry)
     short: str  # the page in a few words (the scorecard's first column)
     part: str  # the thesis's chapter the page belongs to (the sidebar's group)
 
@@ -57,12 +57,15 @@ FLT = "Chapter 5 · Deep Learning for Diversity Search in Continuous Cellular Au
 CHAPTERS: tuple[Chapter, ...] = (
     Chapter(
         "ch2_primer",
-        "Chapters 1–2: the deceptive maze (GA, Novelty Search, MAP-Elites)",
+        "Chapters 1–2: the deceptive maze",
         "Ch. 1–2: the deceptive maze",
         BACKGROUND,
     ),
     Chapter(
-        "ch3_qdpg", "Chapter 3: QD-PG on Point-Maze, Ant-Maze and Ant-Trap", "Ch. 3: QD-PG", QDPG
+        "ch3_qdpg",
+        "Chapter 3: QD-PG — a diversity policy gradient inside MAP-Elites",
+        "Ch. 3: QD-PG",
+        QDPG,
     ),
     Chapter(
         "ch3_baselines",
@@ -78,7 +81,7 @@ CHAPTERS: tuple[Chapter, ...] = (
     ),
     Chapter(
         "ch4_reproducibility",
-        "Chapter 4: MAP-Elites Low-Spread on Ant-Omni and Halfcheetah-Uni",
+        "Chapter 4: policies that do what they say — MAP-Elites Low-Spread",
         "Ch. 4: MAP-Elites Low-Spread",
         QDT,
     ),

@@ -27,6 +27,7 @@ from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
 from qdnb.core import paths, sharding
 from qdnb.core.config import SCALES, check_scale
 from qdnb.core.io import atomic_write_bytes, atomic_write_json, load_summary
+from qdnb.core.names import machine_text
 
 
 class NotebookFailed(RuntimeError):
@@ -393,7 +394,7 @@ def status_table(scale: str) -> str:
         else:
             lines.append(
                 f"| {link} | {scorecard.where(scale, name)} | {summary['seed']} | "
-                f"{summary.get('device', '—')} | {summary['wall_time_s']:.0f} s |"
+                f"{machine_text(summary.get('device', '—'))} | {summary['wall_time_s']:.0f} s |"
             )
     return "\n".join(lines) + "\n"
 

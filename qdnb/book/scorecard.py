@@ -17,7 +17,7 @@ from qdnb.book import publish, registry, verdicts
 from qdnb.core.claims import CANNOT_SHOW, FAILS, HOLDS
 from qdnb.core.config import SCALES
 from qdnb.core.io import load_summary
-from qdnb.core.names import markdown_words
+from qdnb.core.names import machine_text, markdown_words
 
 # what each scale is for, in a sentence (the chapter boxes and the intro)
 SCALE_MEANING = {
@@ -56,7 +56,7 @@ def verdict_column(table, scale: str, column: str = "holds"):
     "verdict" column of ``verdict`` texts."""
     out = table.copy()
     texts = [verdict(v if isinstance(v, str) else bool(v), scale) for v in out[column]]
-    out[column] = [t.replace("`", "") for t in texts]  # a table's cell is no Markdown
+    out[column] = texts  # the book's tables show a cell's `code` spans as code
     return out.rename(columns={column: "verdict"})
 
 
@@ -227,12 +227,12 @@ def chapter_box(name: str, scale: str, summary: dict[str, Any] | None) -> str:
         f"{devices.get('count')} {devices.get('platform', '').upper()} "
         + ("device" if devices.get("count") == 1 else "devices")
         if devices
-        else summary.get("device", "unknown device")
+        else "unknown devices"
     )
     resumed = (summary.get("checkpoints") or {}).get("resumed") or []
     lines += [
         "",
-        f"Seed {summary.get('seed')} · {device} ({summary.get('device', '')}) · "
+        f"Seed {summary.get('seed')} · {device} on {machine_text(summary.get('device', '?'))} · "
         f"{summary.get('wall_time_s', 0):.0f} s"
         + (f", {len(resumed)} loop(s) resumed from checkpoints" if resumed else "")
         + f" · {where(scale, name)}, commit `{str(summary.get('git_sha', ''))[:12]}`.",

@@ -179,7 +179,7 @@ SOURCES: dict[Any, str] = {
     ("CEM-RL", "num_actor_steps"): "the QD-PG page's policy-gradient steps per iteration",
     ("CEM-RL", "td3_config.policy_delay"): _UNUSED + " (the critic trains first, then the actors)",
     ("CEM-RL", "td3_config.actor_lr"): _UNUSED + " (actors step at mutation_lr)",
-    ("CEM-RL", "td3_config.mutation_lr"): "the QD-PG page's mutation rate (CEM-RL paper: 1e-3)",
+    ("CEM-RL", "td3_config.mutation_lr"): "the QD-PG page's mutation rate (CEM-RL paper: 10⁻³)",
     **{
         ("CEM-RL", f"cem_config.{k}"): "CEM-RL paper and code (sepCEM)"
         for k in ("sigma_init", "epsilon_init", "epsilon_end", "epsilon_decay", "elite_fraction")

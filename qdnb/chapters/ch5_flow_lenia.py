@@ -185,6 +185,7 @@ class SystemChoice:
     statistics: dict[str, np.ndarray]  # per candidate: probe_statistics
     passed: dict[str, np.ndarray]  # per candidate: "localised", "diverse", "settled"
     patch_occupancy: float  # the initial patch's share of the grid
+    probe_key: jax.Array  # the key of the kept candidate's probes (its statistics' episodes)
 
 
 def probe_statistics(
@@ -236,9 +237,10 @@ def pick_system(
     if candidates < 1:
         raise ValueError(f"candidates must be positive, got {candidates}")
     patch = world.patch_size**2 / (world.height * world.width)
-    systems, rows = [], []
+    systems, rows, probe_keys = [], [], []
     for k in jax.random.split(key, candidates):
         k_sys, k_probe = jax.random.split(k)
+        probe_keys.append(k_probe)
         systems.append(fl.sample_system(k_sys, world))
         rows.append(probe_statistics(systems[-1], world, k_probe, probes, criteria.window))
     stats = {name: np.array([r[name] for r in rows]) for name in rows[0]}
@@ -254,7 +256,7 @@ def pick_system(
     else:
         best = np.flatnonzero(count == count.max())
         index = int(best[np.argmin(stats["change"][best])])
-    return SystemChoice(systems[index], index, stats, passed, patch)
+    return SystemChoice(systems[index], index, stats, passed, patch, probe_keys[index])
 
 
 @dataclass(frozen=True)
@@ -295,23 +297,22 @@ class P0Comparison:
 
 
 def compare_p0(
-    system: fl.System,
+    choice: SystemChoice,
     world: fl.FlowLeniaConfig,
     key: jax.Array,
     probes: int,
     window: int = 5,
     examples: int = 4,
 ) -> P0Comparison:
-    """``probe_statistics`` of ``system`` under each rule of ``P0_RULES`` (the same
-    probes for both), and the final frames of ``examples`` episodes from the same
-    initial keys."""
+    """``probe_statistics`` of the kept system under each rule of ``P0_RULES``, on the
+    probes its choice was made on (``choice.probe_key``: the row of the world's own rule
+    repeats the kept candidate's statistics), and the final frames of ``examples``
+    episodes from the initial keys of ``fold_in(key, 1)``, the same for both rules."""
     statistics, finals = {}, {}
     for rule in P0_RULES:
         w_rule = dataclasses.replace(world, p0=rule)
-        statistics[rule] = probe_statistics(
-            system, w_rule, jax.random.fold_in(key, 2), probes, window
-        )
-        episodes = fl.simulate_system(system, jax.random.fold_in(key, 1), w_rule, examples)
+        statistics[rule] = probe_statistics(choice.system, w_rule, choice.probe_key, probes, window)
+        episodes = fl.simulate_system(choice.system, jax.random.fold_in(key, 1), w_rule, examples)
         finals[rule] = np.asarray(episodes.A[:, -1, ..., 0])
     return P0Comparison(statistics, finals)
 
@@ -839,7 +840,7 @@ def run(cfg: FlowLeniaChapterConfig, key: jax.Array, progress: bool = True) -> R
     gallery = random_gallery(k_gallery, world, cfg.gallery_systems)
     criteria = SystemCriteria()
     choice = pick_system(k_pick, world, cfg.system_candidates, cfg.system_probes, criteria)
-    p0 = compare_p0(choice.system, world, k_pick, cfg.system_probes, criteria.window)
+    p0 = compare_p0(choice, world, k_pick, cfg.system_probes, criteria.window)
     model = make_model(world, cfg.flt)
     trained = train(model, cfg.flt, world, choice.system, k_train, progress)
     args = (model, trained.params, world, choice.system, trained.mean_frames, k_eval)

@@ -1,7 +1,8 @@
 """The thesis's names for the book's environments, wherever a reader sees one: titles,
 tables, legends, claims; ``markdown_words`` puts a machine-written line in a reader's
 words; ``number_text``, ``seeds_text`` and ``mean_sd`` write numbers, counts and means
-over seeds as the book does."""
+over seeds as the book does (``over_seeds_text`` in captions); ``machine_text`` a
+recorded device."""
 
 import math
 import re
@@ -83,9 +84,34 @@ def number_text(value: float, digits: int = 2) -> str:
     return power if float(mantissa) == 1 else f"{mantissa}·{power}"
 
 
+_DEVICE = re.compile(r"^(\w+): (.+?) x(\d+) \((.*)\)$")
+
+
+def machine_text(recorded: str) -> str:
+    """A recorded ``device()`` string in a reader's words: "cpu: cpu x2 (2 CPU cores, AMD
+    EPYC)" reads "2 CPU cores (AMD EPYC)", "gpu: NVIDIA H100 x1 (16 CPU cores, ...)" reads
+    "1 NVIDIA H100 (beside 16 CPU cores, ...)"; any other text is returned as it is."""
+    m = _DEVICE.match(recorded.strip())
+    if not m:
+        return recorded
+    platform, kind, count, host = m.groups()
+    cores, _, processor = host.partition(", ")
+    if platform == "cpu":
+        return f"{cores} ({processor})" if processor else cores
+    return f"{count} {kind} (beside {host})"
+
+
 def seeds_text(n: int, noun: str = "seed") -> str:
     """``n`` seeds, in words: "1 seed", "4 seeds" (never "seed(s)")."""
     return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
+def over_seeds_text(n: int, spread: str = "range shaded") -> str:
+    """How a figure or table over ``n`` seeds says so: "mean over 3 seeds, range shaded";
+    for one seed "one seed" (no mean, no range)."""
+    return (
+        "one seed" if n == 1 else f"mean over {seeds_text(n)}" + (f", {spread}" if spread else "")
+    )
 
 
 def majority_text(n: int) -> str:

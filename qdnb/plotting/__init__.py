@@ -12,7 +12,7 @@ from qdnb.core.names import (
     ENV_LABELS,  # noqa: F401  (the notebooks' labels)
     number_text,
 )
-from qdnb.plotting.tables import use_book_tables
+from qdnb.plotting.tables import loop_costs, use_book_tables  # noqa: F401 (for the pages)
 
 # One colour per method across the book (a QDT takes the colour of the repertoire it learns from).
 METHOD_COLORS = {
@@ -539,8 +539,9 @@ def draw_pointmaze(ax: plt.Axes) -> None:
 
     from qdnb.envs.pointmaze import GOAL, GOAL_HALF_SIDE, WALLS
 
+    # under the points: a policy pressed against a wall ends on its edge, and must show
     for x0, x1, y0, y1 in WALLS:
-        ax.add_patch(Rectangle((x0, y0 - 0.01), x1 - x0, (y1 - y0) + 0.02, color="black", zorder=5))
+        ax.add_patch(Rectangle((x0, y0 - 0.01), x1 - x0, (y1 - y0) + 0.02, color="0.3", zorder=0.5))
     g = GOAL_HALF_SIDE
     ax.add_patch(
         Rectangle(

@@ -138,3 +138,21 @@ def use_book_tables() -> None:
     formatter = shell.display_formatter.formatters["text/html"]
     formatter.for_type(pd.DataFrame, styled)
     formatter.for_type(pd.Series, styled)
+
+
+def loop_costs(runs: dict[tuple[str, str], Any], per: str = "iteration") -> pd.DataFrame:
+    """What each loop of a run cost, one row per (environment, method): environment steps
+    per seed, seeds, wall time (compilation included) and seconds per ``per`` of the
+    compiled loop; ``runs`` maps the pair to a run with ``env_steps`` (one per seed),
+    ``seconds`` and ``steady_seconds_per_iteration``."""
+    return pd.DataFrame(
+        {
+            (READER_NAMES.get(env, env), method): {
+                "env steps per seed": float(np.mean(r.env_steps)),
+                "seeds": len(r.env_steps),
+                "wall time (s)": round(r.seconds, 1),
+                f"s per {per} (compiled loop)": round(r.steady_seconds_per_iteration, 3),
+            }
+            for (env, method), r in runs.items()
+        }
+    ).T
