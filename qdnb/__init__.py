@@ -16,3 +16,10 @@ __version__ = "0.1.0"
 from qdnb.core.sharding import configure_host_devices as _configure_host_devices  # noqa: E402
 
 _configure_host_devices()
+
+# MuJoCo picks its off-screen OpenGL when it is first imported (brax imports it): EGL, which
+# Mesa provides without a display or a GPU, for the book's robot videos
+# (``qdnb.envs.render``); a MUJOCO_GL set by the user wins.
+import os as _os  # noqa: E402
+
+_os.environ.setdefault("MUJOCO_GL", "egl")

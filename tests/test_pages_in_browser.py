@@ -53,6 +53,12 @@ FAULTS = {
         + "</tr></table>",
         "an output wider than the column",
     ),
+    # a viewer loading its script from a CDN: the book must read offline
+    "outside_request": (
+        '<script src="https://cdn.example.invalid/three.min.js"></script>',
+        CLEAN,
+        "a request leaves the machine",
+    ),
     "progress_bar": (
         "",
         "<pre>QDT(ME): 100%|██████████| 2/2 [00:08&lt;00:00,  4.46s/it]</pre>",
@@ -65,13 +71,31 @@ PNG_1x1 = bytes.fromhex(
 )
 
 
+def video_tag(constant: bool = False) -> str:
+    """A book video (``qdnb.plotting.video``) of a moving square, or of a still one."""
+    import numpy as np
+
+    from qdnb.plotting import video
+
+    frames = np.full((20, 40, 60, 3), 255, np.uint8)
+    for i in range(20):
+        x = 0 if constant else i * 50 // 19
+        frames[i, 15:25, x : x + 10] = (220, 30, 30)
+    return video.video_html(video.encode(frames, fps=10), video._png(frames[-1]), "a square")
+
+
+def all_faults() -> dict:
+    """``FAULTS`` and a video that shows nothing (made here: it needs the encoder)."""
+    return {**FAULTS, "still_video": ("", video_tag(constant=True), "is blank")}
+
+
 def write_pages(tmp_path: Path, names) -> Path:
     html = tmp_path / "html"
     html.mkdir()
     (html / "ok.png").write_bytes(PNG_1x1)
-    (html / "index.html").write_text(PAGE.format(head="", output=CLEAN))
+    (html / "index.html").write_text(PAGE.format(head="", output=CLEAN + video_tag()))
     for name in names:
-        head, output, _ = FAULTS[name]
+        head, output, _ = all_faults()[name]
         (html / f"{name}.html").write_text(PAGE.format(head=head, output=output))
     return html
 
@@ -131,9 +155,10 @@ browser = pytest.mark.skipif(
 
 @browser
 def test_the_browser_finds_each_fault_on_its_page_and_none_on_a_clean_one(tmp_path):
-    html = write_pages(tmp_path, list(FAULTS))
+    faults = all_faults()
+    html = write_pages(tmp_path, list(faults))
     problems = pagecheck.browser_problems(html)
-    for name, (_, _, what) in FAULTS.items():
+    for name, (_, _, what) in faults.items():
         assert any(p.startswith(f"{name}.html: ") and what in p for p in problems), name
     assert not [p for p in problems if p.startswith("index.html")], problems
 

@@ -288,10 +288,75 @@ const t0 = Date.now();
 """
 
 
+# Run in each page after ``_IN_PAGE``: every request the page made stayed on the machine
+# (files and data: URIs: the book reads offline), and every video loads, fits the column,
+# plays (its time advances) and is not blank (its first, middle and last frames are not all
+# the same).  Returns the problems found.
+_MEDIA = r"""
+const done = arguments[arguments.length - 1];
+const out = [];
+for (const e of performance.getEntriesByType('resource')) {
+  if (!/^(file|data|blob):/.test(e.name)) {
+    out.push('a request leaves the machine: ' + e.name.slice(0, 80));
+  }
+}
+const column = document.querySelector('article.bd-article') || document.querySelector('main');
+const width = column ? column.getBoundingClientRect().width : window.innerWidth;
+function pixels(v) {
+  const c = document.createElement('canvas');
+  c.width = 48; c.height = 48;
+  const g = c.getContext('2d');
+  g.drawImage(v, 0, 0, 48, 48);
+  return g.getImageData(0, 0, 48, 48).data;
+}
+function differ(a, b) {
+  let s = 0;
+  for (let i = 0; i < a.length; i++) s += Math.abs(a[i] - b[i]);
+  return s / a.length > 0.05;
+}
+function until(v, event) {
+  return new Promise((ok, ko) => {
+    v.addEventListener(event, ok, {once: true});
+    v.addEventListener('error', () => ko('media error ' + (v.error && v.error.code)), {once: true});
+    setTimeout(() => ko('no ' + event + ' in 10 s'), 10000);
+  });
+}
+(async () => {
+  const videos = [...document.querySelectorAll('video')];
+  for (const [i, v] of videos.entries()) {
+    const what = `video ${i + 1} (${(v.getAttribute('aria-label') || '').slice(0, 50)})`;
+    if (v.getBoundingClientRect().width > width + 2) out.push(`${what} is wider than the column`);
+    try {
+      if (v.readyState < 2) await until(v, 'loadeddata');
+      const frames = [];
+      for (const at of [0, 0.5, 0.95]) {
+        v.currentTime = at * v.duration;
+        await until(v, 'seeked');
+        frames.push(pixels(v));
+      }
+      if (!differ(frames[0], frames[1]) && !differ(frames[0], frames[2])) {
+        out.push(`${what} is blank: its first, middle and last frames are the same`);
+      }
+      v.currentTime = 0;
+      await until(v, 'seeked');
+      await v.play();
+      await new Promise(r => setTimeout(r, 600));
+      v.pause();
+      if (!(v.currentTime > 0)) out.push(`${what} does not play (its time stays at 0)`);
+    } catch (e) {
+      out.push(`${what} does not load: ${e}`);
+    }
+  }
+  done(out);
+})();
+"""
+
+
 def browser_problems(html_dir: Path, width: int = 1280) -> list[str]:
     """Open every page of ``html_dir`` in headless Chromium at ``width`` px and report
     its JavaScript errors, broken images, over-wide tables and figures, raw math and
-    progress bars (``_IN_PAGE``)."""
+    progress bars (``_IN_PAGE``), requests that leave the machine and videos that do not
+    load, play or show anything (``_MEDIA``)."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -305,6 +370,7 @@ def browser_problems(html_dir: Path, width: int = 1280) -> list[str]:
     problems = []
     try:
         driver.set_page_load_timeout(60)
+        driver.set_script_timeout(300)  # a page's videos are played one after another
         for page in pages(html_dir):
             name = page.relative_to(html_dir)
             driver.get(page.resolve().as_uri())
@@ -313,6 +379,7 @@ def browser_problems(html_dir: Path, width: int = 1280) -> list[str]:
                 if entry.get("level") == "SEVERE":
                     problems.append(f"{name}: a JavaScript error: {entry.get('message', '')[:200]}")
             problems += [f"{name}: {p}" for p in driver.execute_script(_IN_PAGE)]
+            problems += [f"{name}: {p}" for p in driver.execute_async_script(_MEDIA)]
     finally:
         driver.quit()
     return problems

@@ -22,6 +22,7 @@ from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
 from qdnb.envs.pointmaze import GOAL, in_goal
+from qdnb.envs.rollout import episode_path
 from qdnb.nets.mlp import MLP
 from qdnb.qd.algorithms import (
     GeneticAlgorithm,
@@ -166,6 +167,22 @@ def run(cfg: PrimerConfig, key: jax.Array, progress: bool = True) -> Result:
         )
         runs[name] = MethodRun(jax.device_get(history), states, time.time() - start)
     return Result(cfg, runs)
+
+
+def best_episodes(result: Result, key: jax.Array, seed: int = 0) -> dict[str, np.ndarray]:
+    """The fittest policy each method holds at the end of seed ``seed`` (the GA's and
+    Novelty Search's best of their final population, MAP-Elites' best elite), each
+    played for one episode from the same initial state (``key``): ``{method: (T + 1, 2)}``
+    positions, held once the episode ends (the chapter's video)."""
+    env, network = make_task(result.config)
+    paths = {}
+    for name, method in result.runs.items():
+        final = take(method.final, seed)
+        found = final.repertoire if name == "ME" else final
+        policies = found.genotypes if name == "ME" else found.population
+        best = int(np.argmax(np.asarray(found.fitnesses)))
+        paths[name] = episode_path(env, network.apply, take(policies, best), key)
+    return paths
 
 
 def method_metrics(result: Result) -> dict[str, dict[str, Any]]:

@@ -1,0 +1,209 @@
+"""Episodes as videos (qdnb.plotting.video): frames to file and back, the WebP fallback,
+the page's output (a numbered, captioned figure), and the frames the chapters draw."""
+
+import base64
+import re
+
+import jax
+import nbformat
+import numpy as np
+import pytest
+
+from qdnb.plotting import FIGURE_KEY
+from qdnb.plotting import video as v
+
+
+def moving_square(t=12, h=40, w=60):
+    """A red square crossing a white frame: every frame differs from the last."""
+    frames = np.full((t, h, w, 3), 255, np.uint8)
+    for i in range(t):
+        x = i * (w - 10) // (t - 1)
+        frames[i, 15:25, x : x + 10] = (220, 30, 30)
+    return frames
+
+
+def test_frames_round_trip_through_the_encoder_with_their_count_and_size():
+    frames = moving_square()
+    video = v.encode(frames, fps=10)
+    assert video.mime == "video/mp4" and video.data[4:8] == b"ftyp"  # an MP4 container
+    assert (video.frames, video.width, video.height) == (12, 60, 40)
+    back = v.decode(video)
+    assert back.shape == frames.shape
+    # lossy, but the square is where it was: the mean error is a few levels of 255
+    assert np.abs(back.astype(int) - frames).mean() < 8
+    assert back[0, 20, 5, 1] < 100 and back[-1, 20, 5, 1] > 200  # it moved away
+
+
+def test_odd_sides_are_padded_and_a_video_over_its_budget_is_refused():
+    video = v.encode(moving_square(h=41, w=61))
+    assert (video.width, video.height) == (62, 42)  # H.264's 4:2:0 colour needs even sides
+    noise = np.random.default_rng(0).integers(0, 256, (30, 64, 64, 3), dtype=np.uint8)
+    with pytest.raises(ValueError, match="over the 0.00 MB a video may"):
+        v.encode(noise, max_bytes=1_000)
+
+
+def test_without_the_encoder_the_episode_is_an_animated_webp_said_once(monkeypatch, capsys):
+    monkeypatch.setattr(v, "encoder", lambda: "imageio-ffmpeg is not usable (test)")
+    monkeypatch.setattr(v, "_said_fallback", False)
+    frames = moving_square()
+    first, second = v.encode(frames), v.encode(frames)
+    assert first.mime == "image/webp" and first.data[:4] == b"RIFF"
+    assert v.decode(first).shape == frames.shape
+    assert capsys.readouterr().out.count("animated WebP") == 1  # said once, not per video
+    assert v.video_html(second, b"", "a square").startswith('<img class="qdnb-video"')
+
+
+def test_scalar_frames_are_coloured_and_clips_play_side_by_side_in_step():
+    scalar = np.zeros((3, 4, 5))
+    scalar[:, 0, 0] = 2.0
+    rgb = v.rgb_frames(scalar, cmap="gray")
+    assert rgb.shape == (3, 4, 5, 3) and rgb.dtype == np.uint8
+    assert tuple(rgb[0, 0, 0]) == (255, 255, 255) and tuple(rgb[0, 1, 1]) == (0, 0, 0)
+    assert v.enlarge(rgb, 3).shape == (3, 12, 15, 3)
+    short, tall = moving_square(t=5, h=30), moving_square(t=8, h=40)
+    row = v.side_by_side([short, tall], gap=4)
+    assert row.shape == (8, 40, 60 + 4 + 60, 3)
+    assert np.array_equal(row[7, :30, :60], short[-1])  # the shorter clip holds its last frame
+    assert np.all(row[:, 30:, :60] == 255) and np.all(row[:, :, 60:64] == 255)  # white padding
+    column = v.one_above_another([short, tall], gap=4)
+    assert column.shape == (8, 30 + 4 + 40, 60, 3)
+    assert np.array_equal(column[7, :30], short[-1]) and np.all(column[:, 30:34] == 255)
+    head = v.titled(tall, "TD3", band=18)
+    assert head.shape == (8, 58, 60, 3) and (head[:, :18] < 128).any()  # the title is written
+    with pytest.raises(ValueError):
+        v.rgb_frames(np.zeros((2, 3)))
+    with pytest.raises(ValueError):
+        v.side_by_side([])
+
+
+def test_a_maze_episode_draws_the_point_where_the_path_is():
+    path = np.array([[0.0, -0.9], [0.5, -0.9], [0.5, 0.5], [-0.5, 0.8]])
+    frames = v.maze_frames(path, size=101, color="#ff0000", every=1)
+    assert frames.shape == (4, 101, 101, 3)
+    # the last frame's dot sits on the goal: pixel ((x + 1) / 2, (1 - y) / 2) of the image
+    col, row = round((-0.5 + 1) / 2 * 100), round((1 - 0.8) / 2 * 100)
+    assert tuple(frames[-1, row, col]) == (255, 0, 0)
+    assert tuple(frames[0, row, col]) != (255, 0, 0)
+    # the walls are drawn (the upper one spans x in [-1, 0.5] at y = 0.2)
+    assert tuple(frames[0, round(0.4 * 100), 20]) == (77, 77, 77)
+    with pytest.raises(ValueError):
+        v.maze_frames(np.zeros((3, 3)))
+
+
+def test_a_video_is_displayed_as_a_numbered_captioned_figure_of_the_page(monkeypatch):
+    from qdnb.book.runner import book_figures
+
+    shown = []
+    monkeypatch.setattr(
+        "IPython.display.display", lambda data, raw, metadata: shown.append((data, metadata))
+    )
+    assert (
+        v.show_video(moving_square(), "The square crosses.", "A red square.", "fig-square") is None
+    )
+    ((data, metadata),) = shown
+    html = data["text/html"]
+    assert re.search(r"<video [^>]*controls loop muted", html) and 'poster="data:image/png' in html
+    assert 'type="video/mp4"' in html and 'aria-label="A red square."' in html
+    played = base64.b64decode(re.search(r'src="data:video/mp4;base64,([^"]+)"', html)[1])
+    assert played == v.encode(moving_square()).data
+    assert "max-width: 100%" in html  # never wider than the column
+    assert metadata[FIGURE_KEY] == {
+        "caption": "The square crosses.",
+        "alt": "A red square.",
+        "name": "fig-square",
+        "video": True,
+    }
+    # the book puts it alone in a cell whose MyST-NB options make it a numbered figure
+    cell = nbformat.v4.new_code_cell("show_video(...)")
+    cell.outputs = [nbformat.v4.new_output("display_data", data=data, metadata=metadata)]
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [cell]
+    book_figures(nb)
+    figure = nb.cells[1].metadata["mystnb"]["figure"]
+    assert figure == {"caption": "The square crosses.", "name": "fig-square"}
+    with pytest.raises(ValueError, match="caption and an alt text"):
+        v.show_video(moving_square(), " ", "alt")
+    with pytest.raises(ValueError, match="does not fit the page's column"):
+        v.show_video(moving_square(w=700), "caption", "alt")
+
+
+def test_an_episode_path_holds_its_last_state_once_the_episode_has_ended():
+    from dataclasses import dataclass
+
+    import jax.numpy as jnp
+
+    from qdnb.envs.base import Env, EnvState
+    from qdnb.envs.rollout import episode_path
+
+    @dataclass(frozen=True)
+    class Walker(Env):
+        """Moves by its action every step and is done after its third step; the scan
+        keeps stepping it (six steps), so it walks on past its end."""
+
+        episode_length: int = 6
+        observation_size: int = 1
+        action_size: int = 1
+        descriptor_size: int = 1
+        descriptor_low: tuple[float, ...] = (-10.0,)
+        descriptor_high: tuple[float, ...] = (10.0,)
+
+        def reset(self, key):
+            zero = jnp.zeros(1)
+            return EnvState(zero, zero, jnp.zeros(()), jnp.zeros((), bool), zero, jnp.int32(0))
+
+        def step(self, state, action):
+            x = state.core + action
+            steps = state.steps + 1
+            return EnvState(x, x, jnp.zeros(()), steps >= 3, x, steps)
+
+    path = episode_path(Walker(), lambda params, obs: params, jnp.ones(1), jax.random.PRNGKey(0))
+    assert path[:, 0].tolist() == [0, 1, 2, 3, 3, 3, 3]  # the reset state, three steps, held
+
+
+def test_robot_states_are_held_once_an_episode_ends_and_drawn_from_the_model():
+    from dataclasses import dataclass
+    from typing import NamedTuple
+
+    import jax.numpy as jnp
+
+    from qdnb.envs.base import Env, EnvState
+    from qdnb.envs.render import episode_states, renderer_missing
+
+    class Core(NamedTuple):
+        q: jax.Array
+
+    @dataclass(frozen=True)
+    class Slider(Env):
+        """Slides by its action each step; done once past 2.5 (the scan steps on)."""
+
+        episode_length: int = 5
+        observation_size: int = 1
+        action_size: int = 1
+        descriptor_size: int = 1
+        descriptor_low: tuple[float, ...] = (-10.0,)
+        descriptor_high: tuple[float, ...] = (10.0,)
+
+        def reset(self, key):
+            q = jnp.zeros(1)
+            return EnvState(Core(q), q, jnp.zeros(()), jnp.zeros((), bool), q, jnp.int32(0))
+
+        def step(self, state, action):
+            q = state.core.q + action
+            done = q[0] > 2.5
+            return EnvState(Core(q), q, jnp.zeros(()), done, q, state.steps + 1)
+
+    speeds = jnp.array([[1.0], [0.5]])  # two policies: the first ends at its third step
+    qs, alive = episode_states(
+        Slider(), lambda p, obs: p, speeds, jax.random.split(jax.random.PRNGKey(0), 2)
+    )
+    assert qs[0, :, 0].tolist() == [0, 1, 2, 3, 3, 3] and alive[0].tolist() == [1, 1, 1, 0, 0, 0]
+    assert qs[1, :, 0].tolist() == [0, 0.5, 1, 1.5, 2, 2.5] and alive[1].all()
+    if renderer_missing() is None:  # the Ant drawn from its MuJoCo model: not a blank image
+        from qdnb.envs import make_env
+        from qdnb.envs.render import Camera, render
+
+        env = make_env("ant_omni")
+        q0 = np.asarray(env.reset(jax.random.PRNGKey(0)).core.q)
+        frames = render(env, np.stack([q0, q0 + 0.3]), width=64, height=48, camera=Camera())
+        assert frames.shape == (2, 48, 64, 3) and frames.std() > 10
+        assert not np.array_equal(frames[0], frames[1])  # the robot moved
