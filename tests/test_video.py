@@ -207,3 +207,6 @@ def test_robot_states_are_held_once_an_episode_ends_and_drawn_from_the_model():
         frames = render(env, np.stack([q0, q0 + 0.3]), width=64, height=48, camera=Camera())
         assert frames.shape == (2, 48, 64, 3) and frames.std() > 10
         assert not np.array_equal(frames[0], frames[1])  # the robot moved
+        marked = render(env, q0[None], 64, 48, Camera(), marks=((0.8, 0.0),))
+        red = (marked[0, ..., 0] > 150) & (marked[0, ..., 1] < 80) & (marked[0, ..., 2] < 80)
+        assert red.any() and not np.array_equal(marked[0], frames[0])  # the disc is drawn

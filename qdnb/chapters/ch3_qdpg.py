@@ -377,6 +377,11 @@ QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")  # this p
 Config = QDPGConfig
 
 
+def policy_network(cfg: QDPGConfig, env_name: str, env: Env) -> MLP:
+    """Every method's policy on ``env_name``: Table 3.2's widths, relu (QDax's)."""
+    return MLP(cfg.task(env_name).policy_hidden + (env.action_size,), activation="relu")
+
+
 def build_algorithms(
     cfg: QDPGConfig,
     env_name: str,
@@ -391,7 +396,7 @@ def build_algorithms(
         raise ValueError(f"unknown methods {sorted(unknown)}; valid: {', '.join(METHODS)}")
     task = cfg.task(env_name)
     env = env if env is not None else make_task_env(cfg, env_name)
-    network = MLP(task.policy_hidden + (env.action_size,), activation="relu")
+    network = policy_network(cfg, env_name, env)
     td3_config = TD3Config(
         gamma=cfg.discount,
         tau=cfg.tau,
@@ -469,6 +474,7 @@ class MethodResult:
     seconds: float
     steady_seconds_per_iteration: float
     diverged: tuple[health.Divergence | None, ...] = ()
+    policy: Any = None  # seed 0's policy to watch (``shown_policy``); None when read from disk
 
     @property
     def kept(self) -> np.ndarray:
@@ -572,6 +578,7 @@ def run_method(
     seconds = time.perf_counter() - start
     steps = np.cumsum(history["env_steps"], axis=1)
     grid = final_grid(states)
+    policy = shown_policy(states, grid)
     diverged = tuple(health.divergences(history["nan_parts"], health.part_names(states)))
     lost = np.array([d is not None for d in diverged])
     coverage = (
@@ -591,7 +598,20 @@ def run_method(
             chunks, cfg.chunk_size, seconds / task.num_iterations
         ),
         diverged=diverged,
+        policy=policy,
     )
+
+
+def shown_policy(states: Any, grid: dict[str, np.ndarray] | None) -> Any:
+    """Seed 0's policy a reader watches (the chapter's videos): the fittest elite of its
+    final grid, or TD3's actor, which it plays greedily; ``None`` for another method."""
+    if grid is not None:
+        fitness = np.nan_to_num(np.asarray(grid["fitnesses"][0], float), nan=-np.inf)
+        if not np.isfinite(fitness).any():  # an empty grid, or a seed that diverged
+            return None
+        return jax.tree.map(lambda x: x[0, int(np.argmax(fitness))], grid["genotypes"])
+    td3 = getattr(states, "td3", None)
+    return None if td3 is None else jax.device_get(jax.tree.map(lambda x: x[0], td3.actor))
 
 
 def until_goal(env_name: str, num_seeds: int) -> Callable[[dict[str, Any]], bool]:

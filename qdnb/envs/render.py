@@ -85,11 +85,18 @@ class Camera:
 
 
 def render(
-    env: Env, qs: np.ndarray, width: int = 200, height: int = 150, camera: Camera = Camera()
+    env: Env,
+    qs: np.ndarray,
+    width: int = 200,
+    height: int = 150,
+    camera: Camera = Camera(),
+    marks: tuple[tuple[float, float], ...] = (),
 ) -> np.ndarray:
     """The states ``qs`` ``(T, nq)`` of ``env``'s robot as RGB frames ``(T, height,
     width, 3)``, drawn by MuJoCo from ``env.brax_env.sys.mj_model`` (``RuntimeError`` where
-    it cannot draw: ``renderer_missing``)."""
+    it cannot draw: ``renderer_missing``), with a red disc on the floor at each of
+    ``marks`` ``(x, y)`` (where a policy promised to end, say); the discs are drawn, not
+    simulated."""
     import mujoco
 
     why = renderer_missing()
@@ -107,5 +114,17 @@ def render(
             mujoco.mj_forward(model, data)
             view.lookat[:] = camera.lookat if camera.lookat is not None else data.qpos[:3]
             renderer.update_scene(data, camera=view)
+            for x, y in marks:
+                scene = renderer.scene
+                if scene.ngeom < scene.maxgeom:
+                    mujoco.mjv_initGeom(
+                        scene.geoms[scene.ngeom],
+                        mujoco.mjtGeom.mjGEOM_CYLINDER,
+                        np.array([0.2, 0.005, 0.0]),
+                        np.array([x, y, 0.005]),
+                        np.eye(3).ravel(),
+                        np.array([0.85, 0.1, 0.1, 1.0], np.float32),
+                    )
+                    scene.ngeom += 1
             frames[t] = renderer.render()
     return frames
