@@ -43,7 +43,7 @@ EVOLUTION = ("ME-ES", "NSR-ES", "NSRA-ES")  # in Table 3.3's order
 # this page's methods: their builders in the chapter's method registry
 METHODS = {name: CHAPTER_METHODS[name] for name in EVOLUTION}
 ENVIRONMENTS = ("pointmaze", "antmaze")  # Table 3.3 is Ant-Maze's; Point-Maze is where ES is cheap
-FACTOR = 10  # the claim: QD-PG needs at least 10x fewer steps than the fastest ES method
+FACTOR = 10  # the claim: QD-PG needs at least 10× fewer steps than the fastest ES method
 
 
 @dataclass(frozen=True)
@@ -202,7 +202,7 @@ def sample_efficiency(result: Result, env_name: str = "pointmaze") -> tuple[str,
         f"QD-PG {', '.join(number_text(v, 3) for v in qd)} steps; fastest ES: {fastest}, "
         f"{', '.join(number_text(v, 3) for v in steps[fastest])} (∞: never reached)"
     )
-    claim = f"QD-PG reaches the goal with {FACTOR}x fewer steps than the fastest ES method"
+    claim = f"QD-PG reaches the goal with {FACTOR}× fewer steps than the fastest ES method"
     return claim, holds, numbers
 
 

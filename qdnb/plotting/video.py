@@ -26,6 +26,9 @@ import numpy as np
 # a video under 1 MB at the column's width (the issue's budget; a page's under 10 MB)
 MAX_BYTES = 1_000_000
 FPS = 20
+# a white band under every book video: the player's control bar covers the bottom of the
+# picture, and would hide what an episode shows there (Point-Maze's start zone)
+CONTROLS_PX = 36
 # the encoder's quality steps, best first: the first that fits MAX_BYTES is kept
 CRF_STEPS = (23, 28, 33, 38)
 _said_fallback = False
@@ -241,7 +244,8 @@ def show_video(frames, caption: str, alt: str, name: str | None = None, fps: int
     numbered with the figures: ``caption`` (MyST Markdown, beneath it), ``alt`` (what
     it shows, for a reader who cannot see it) and ``name``, a label other text can refer
     to.  A video wider than the column (``COLUMN_INCHES`` at ``DISPLAY_DPI``) is
-    refused, as a figure is.  Returns nothing, as ``show`` (a cell ending with it shows
+    refused, as a figure is; a white band (``CONTROLS_PX``) under the picture keeps the
+    player's controls off it.  Returns nothing, as ``show`` (a cell ending with it shows
     no repr)."""
     from IPython.display import display
 
@@ -256,6 +260,7 @@ def show_video(frames, caption: str, alt: str, name: str | None = None, fps: int
             f"a video {frames.shape[2]} px wide does not fit the page's column ({column} px): "
             "smaller frames, or fewer side by side"
         )
+    frames = np.pad(frames, ((0, 0), (0, CONTROLS_PX), (0, 0), (0, 0)), constant_values=255)
     video = encode(frames, fps)
     poster = _png(_even(frames[-1:])[0])
     display(
