@@ -3,12 +3,16 @@ the page's output (a numbered, captioned figure), and the frames the chapters dr
 
 import base64
 import re
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import nbformat
 import numpy as np
 import pytest
 
+from qdnb.envs.base import Env, EnvState
 from qdnb.plotting import FIGURE_KEY
 from qdnb.plotting import video as v
 
@@ -129,74 +133,46 @@ def test_a_video_is_displayed_as_a_numbered_captioned_figure_of_the_page(monkeyp
         v.show_video(moving_square(w=700), "caption", "alt")
 
 
+class Core(NamedTuple):
+    q: jax.Array
+
+
+@dataclass(frozen=True)
+class Slider(Env):
+    """Slides by its action each step and is done once past 2.5; the scan keeps stepping
+    it to ``episode_length``, so it slides on past its end. Its core holds ``q``, as a
+    brax state does."""
+
+    episode_length: int = 6
+    observation_size: int = 1
+    action_size: int = 1
+    descriptor_size: int = 1
+    descriptor_low: tuple[float, ...] = (-10.0,)
+    descriptor_high: tuple[float, ...] = (10.0,)
+
+    def reset(self, key):
+        q = jnp.zeros(1)
+        return EnvState(Core(q), q, jnp.zeros(()), jnp.zeros((), bool), q, jnp.int32(0))
+
+    def step(self, state, action):
+        q = state.core.q + action
+        return EnvState(Core(q), q, jnp.zeros(()), q[0] > 2.5, q, state.steps + 1)
+
+
 def test_an_episode_path_holds_its_last_state_once_the_episode_has_ended():
-    from dataclasses import dataclass
-
-    import jax.numpy as jnp
-
-    from qdnb.envs.base import Env, EnvState
     from qdnb.envs.rollout import episode_path
 
-    @dataclass(frozen=True)
-    class Walker(Env):
-        """Moves by its action every step and is done after its third step; the scan
-        keeps stepping it (six steps), so it walks on past its end."""
-
-        episode_length: int = 6
-        observation_size: int = 1
-        action_size: int = 1
-        descriptor_size: int = 1
-        descriptor_low: tuple[float, ...] = (-10.0,)
-        descriptor_high: tuple[float, ...] = (10.0,)
-
-        def reset(self, key):
-            zero = jnp.zeros(1)
-            return EnvState(zero, zero, jnp.zeros(()), jnp.zeros((), bool), zero, jnp.int32(0))
-
-        def step(self, state, action):
-            x = state.core + action
-            steps = state.steps + 1
-            return EnvState(x, x, jnp.zeros(()), steps >= 3, x, steps)
-
-    path = episode_path(Walker(), lambda params, obs: params, jnp.ones(1), jax.random.PRNGKey(0))
+    # one step a step: done at its third, held for the three after
+    path = episode_path(Slider(6), lambda params, obs: params, jnp.ones(1), jax.random.PRNGKey(0))
     assert path[:, 0].tolist() == [0, 1, 2, 3, 3, 3, 3]  # the reset state, three steps, held
 
 
 def test_robot_states_are_held_once_an_episode_ends_and_drawn_from_the_model():
-    from dataclasses import dataclass
-    from typing import NamedTuple
-
-    import jax.numpy as jnp
-
-    from qdnb.envs.base import Env, EnvState
     from qdnb.envs.render import episode_states, renderer_missing
-
-    class Core(NamedTuple):
-        q: jax.Array
-
-    @dataclass(frozen=True)
-    class Slider(Env):
-        """Slides by its action each step; done once past 2.5 (the scan steps on)."""
-
-        episode_length: int = 5
-        observation_size: int = 1
-        action_size: int = 1
-        descriptor_size: int = 1
-        descriptor_low: tuple[float, ...] = (-10.0,)
-        descriptor_high: tuple[float, ...] = (10.0,)
-
-        def reset(self, key):
-            q = jnp.zeros(1)
-            return EnvState(Core(q), q, jnp.zeros(()), jnp.zeros((), bool), q, jnp.int32(0))
-
-        def step(self, state, action):
-            q = state.core.q + action
-            done = q[0] > 2.5
-            return EnvState(Core(q), q, jnp.zeros(()), done, q, state.steps + 1)
 
     speeds = jnp.array([[1.0], [0.5]])  # two policies: the first ends at its third step
     qs, alive = episode_states(
-        Slider(), lambda p, obs: p, speeds, jax.random.split(jax.random.PRNGKey(0), 2)
+        Slider(5), lambda p, obs: p, speeds, jax.random.split(jax.random.PRNGKey(0), 2)
     )
     assert qs[0, :, 0].tolist() == [0, 1, 2, 3, 3, 3] and alive[0].tolist() == [1, 1, 1, 0, 0, 0]
     assert qs[1, :, 0].tolist() == [0, 0.5, 1, 1.5, 2, 2.5] and alive[1].all()
