@@ -11,11 +11,22 @@ The frames are synthetic where only their size matters (the encoder's time and b
 depend on the content, so the maze and Flow Lenia clips are drawn as the pages draw them,
 from made-up paths and patterns), and random policies' episodes for the robots.
 
-    python bench/video.py      # about a minute on 2 cores
+    python bench/video.py                  # about a minute on 2 cores
+    python bench/video.py --pages small    # the pages' own videos, from their executed runs
+
+``--pages SCALE`` reads each page's executed notebook under ``data/runs/SCALE/`` (run it
+after ``python -m qdnb run ... --scale SCALE``): per page, every video's size, their total,
+and the time of the cells that made them (papermill's per-cell durations: playing the
+episodes, drawing and encoding, an upper bound on the encoding alone) against the page's
+wall time; written to ``bench/results/video_pages_SCALE.json``.
 """
 
 from __future__ import annotations
 
+import argparse
+import base64
+import json
+import re
 import time
 
 import jax
@@ -102,7 +113,51 @@ def page_clips(robots: dict) -> dict[str, np.ndarray]:
     return clips
 
 
+VIDEO = re.compile(r'src="data:video/\w+;base64,([^"]+)"')
+
+
+def page_rows(scale: str) -> dict:
+    """Each executed page's videos: sizes, and the time of the cells that made them."""
+    from qdnb.book import registry
+
+    rows = {}
+    for chapter in registry.CHAPTERS:
+        run = paths.ROOT / "data" / "runs" / scale / chapter.name
+        notebook, execution = run / f"{chapter.name}.ipynb", run / "execution.json"
+        if not notebook.exists() or not execution.exists():
+            continue
+        sizes, seconds = [], 0.0
+        for cell in json.loads(notebook.read_text())["cells"]:
+            html = "".join(
+                "".join(o.get("data", {}).get("text/html", "")) for o in cell.get("outputs", [])
+            )
+            found = [len(base64.b64decode(m)) for m in VIDEO.findall(html)]
+            if found:
+                sizes += found
+                seconds += cell.get("metadata", {}).get("papermill", {}).get("duration") or 0.0
+        wall = json.loads(execution.read_text())["execution_wall_time_s"]
+        rows[chapter.name] = {
+            "videos": len(sizes),
+            "megabytes": [round(b / 1e6, 3) for b in sizes],
+            "total_megabytes": round(sum(sizes) / 1e6, 3),
+            "video_cells_seconds": round(seconds, 1),
+            "page_seconds": wall,
+            "share_of_page": round(seconds / wall, 3),
+        }
+    return rows
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pages", metavar="SCALE", help="measure the executed pages instead")
+    args = parser.parse_args()
+    if args.pages:
+        rows = page_rows(args.pages)
+        out = RESULTS.with_name(f"video_pages_{args.pages}.json")
+        write_result(out, {"question": "What each page's videos weigh and cost.", "pages": rows})
+        for k, v in rows.items():
+            print(k, v)
+        return
     missing = renderer_missing()
     robots, frames = ({}, {}) if missing else robot_rows()
     encodings = {}

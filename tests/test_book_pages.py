@@ -65,6 +65,7 @@ def test_a_mean_over_one_seed_has_no_spread_and_diverged_seeds_are_counted():
     assert mean_sd([1.0, 3.0], digits=2) == "2.00 ± 1.00 (2 seeds)"
     assert mean_sd([1.0, 3.0, np.nan]) == "2.0 ± 1.0 (2 seeds), 1 diverged"
     assert mean_sd([np.nan]) == "diverged" and mean_sd([]) == "—"
+    assert mean_sd([1500.0, 1580.0], digits=0) == "1,540 ± 40 (2 seeds)"  # thousands separated
 
 
 def test_machine_written_words_become_a_readers():

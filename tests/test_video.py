@@ -160,7 +160,7 @@ class Slider(Env):
 
 
 def test_an_episode_path_holds_its_last_state_once_the_episode_has_ended():
-    from qdnb.envs.rollout import episode_path
+    from qdnb.envs.render import episode_path
 
     # one step a step: done at its third, held for the three after
     path = episode_path(Slider(6), lambda params, obs: params, jnp.ones(1), jax.random.PRNGKey(0))
@@ -188,3 +188,45 @@ def test_robot_states_are_held_once_an_episode_ends_and_drawn_from_the_model():
         marked = render(env, q0[None], 64, 48, Camera(), marks=((0.8, 0.0),))
         red = (marked[0, ..., 0] > 150) & (marked[0, ..., 1] < 80) & (marked[0, ..., 2] < 80)
         assert red.any() and not np.array_equal(marked[0], frames[0])  # the disc is drawn
+
+
+def test_recorded_actions_replay_step_by_step_and_are_held_once_the_episode_ends():
+    from qdnb.envs.render import replay_states
+
+    actions = jnp.array([[[1.0], [0.5], [2.0], [1.0], [1.0]], [[0.1], [0.2], [0.3], [0.4], [0.5]]])
+    qs, alive = replay_states(Slider(5), actions, jax.random.split(jax.random.PRNGKey(0), 2))
+    assert qs.shape == (2, 6, 1)
+    assert qs[0, :, 0].tolist() == [0, 1, 1.5, 3.5, 3.5, 3.5]  # done past 2.5 at step 3: held
+    assert alive[0].tolist() == [1, 1, 1, 0, 0, 0]
+    assert np.allclose(qs[1, :, 0], [0, 0.1, 0.3, 0.6, 1.0, 1.5]) and alive[1].all()
+
+
+def test_a_mark_keeps_its_size_on_screen_as_the_camera_backs_away():
+    from qdnb.envs.render import renderer_missing
+
+    if renderer_missing() is not None:
+        pytest.skip(renderer_missing())
+    from qdnb.envs import make_env
+    from qdnb.envs.render import Camera, render
+
+    env = make_env("ant_omni")
+    q0 = np.asarray(env.reset(jax.random.PRNGKey(0)).core.q)
+
+    def red_pixels(distance, **kw):
+        camera = Camera(distance=distance, elevation=-89.0, lookat=(0.0, 0.0, 0.0))
+        frame = render(env, q0[None], 80, 80, camera, marks=((distance / 5, 0.0),), **kw)[0]
+        r, g, b = np.moveaxis(frame.astype(int), -1, 0)
+        return int(((r > g + 60) & (r > b + 60)).sum())  # red, however lit
+
+    near, far = red_pixels(4.0), red_pixels(16.0)
+    assert near > 0 and 0.5 < far / near < 2.0  # the default radius follows the distance
+    assert red_pixels(16.0, mark_radius=0.2) < far / 4  # a fixed radius shrinks on screen
+    camera = Camera(distance=40.0, elevation=-89.0, lookat=(0.0, 0.0, 0.0))
+    r, g, b = np.moveaxis(
+        render(env, q0[None], 80, 80, camera, torso_mark=True)[0].astype(int), -1, 0
+    )
+    blue = (b > r + 60) & (b > g + 60)
+    rows, cols = np.nonzero(blue)
+    assert blue.any() and abs(rows.mean() - 40) < 6 and abs(cols.mean() - 40) < 6  # under the torso
+    with pytest.raises(ValueError, match="mark_radius"):
+        render(env, q0[None], 8, 8, Camera(), marks=((0.0, 0.0),), mark_radius=0.0)

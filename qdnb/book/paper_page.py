@@ -39,21 +39,21 @@ def chapter_rows(report: dict[str, Any]) -> list[dict[str, str]]:
         gpu = (
             "no rate measured"
             if not t["loops_with_gpu_rate"]
-            else f"{hours(t['gpu_hours_measured'])} for {t['loops_with_gpu_rate']} of "
-            f"{t['loops']} loops"
+            else f"{hours(t['gpu_hours_measured'])} ({t['loops_with_gpu_rate']} of "
+            f"{t['loops']} loops measured)"
         )
         rows.append(
             {
                 "page": registry.chapter(name).short,
                 "dry run": {"ok": "ran", "cut off": "CUT OFF"}.get(nb["status"], "FAILED")
                 + f", {t['loops']} loop{'' if t['loops'] == 1 else 's'}",
-                "hours on this CPU": hours(t["cpu_hours"])
+                "time on this CPU": hours(t["cpu_hours"])
                 + (
                     f" (and {t['loops_not_run_here']} loops it cannot run)"
                     if t.get("loops_not_run_here")
                     else ""
                 ),
-                "hours on one H100": gpu,
+                "time on one H100": gpu,
                 "memory: device (largest loop) · host (peak) · disk": (
                     f"{gigabytes(t['peak_device_bytes'])}"
                     + ("" if t["fits_gpu"] else " (over 80 GB)")

@@ -22,7 +22,7 @@ from qdnb.core.tree import take
 from qdnb.envs import make_env
 from qdnb.envs.base import Env
 from qdnb.envs.pointmaze import GOAL, in_goal
-from qdnb.envs.rollout import episode_path
+from qdnb.envs.render import episode_path
 from qdnb.nets.mlp import MLP
 from qdnb.qd.algorithms import (
     GeneticAlgorithm,

@@ -811,8 +811,9 @@ def method_summaries(
 class FastAdaptation:
     """QD-PG's final Ant-Maze grid (seed 0) searched for new goals (Figures 3.6, 3.7):
     ``paths`` (solutions, T, 2) and ``alive`` (solutions, T) of every stored
-    solution's episode; per goal, the best score of Bayesian optimisation and of
-    random search with ``budget`` evaluations, and the exhaustive best."""
+    solution's episode; per goal, the best score of Bayesian optimisation, the cell of
+    the solution that scored it (``bo_pick``, -1 with no stored solution), the best
+    score of random search with ``budget`` evaluations, and the exhaustive best."""
 
     goals: np.ndarray
     budget: int
@@ -821,6 +822,7 @@ class FastAdaptation:
     paths: np.ndarray
     alive: np.ndarray
     bo_best: np.ndarray
+    bo_pick: np.ndarray
     rs_best: np.ndarray
     exhaustive: np.ndarray
 
@@ -844,10 +846,10 @@ def fast_adaptation(cfg: QDPGConfig, antmaze: EnvironmentResult, seed: int) -> F
     grid, maze = antmaze.methods["QD-PG"].grid, antmaze.env
     valid = np.isfinite(grid["fitnesses"][0])
     genotypes = take(grid["genotypes"], 0)
-    network = MLP(cfg.antmaze.policy_hidden + (maze.action_size,), activation="relu")
+    network = policy_network(cfg, "antmaze", maze)
     episode = jax.jit(
         lambda g, k: evaluate_policies(maze, network.apply, g, k, return_trajectory=True)
-    )(genotypes, jax.random.PRNGKey(seed + 1))
+    )(genotypes, _adaptation_episodes_key(seed))
     paths_xy = np.asarray(episode.trajectory["next_state_descriptor"])
     alive = np.asarray(episode.trajectory["valid"])
     k_goals, k_bo = jax.random.split(jax.random.PRNGKey(seed + 2))
@@ -872,9 +874,30 @@ def fast_adaptation(cfg: QDPGConfig, antmaze: EnvironmentResult, seed: int) -> F
         paths_xy,
         alive,
         np.asarray(bo["best_score"]),
+        np.asarray(bo["best_index"]),
         np.asarray(rs["best_score"]),
         exhaustive,
     )
+
+
+def _adaptation_episodes_key(seed: int) -> jax.Array:
+    """The key of the one recorded episode each stored solution plays for Section 3.7."""
+    return jax.random.PRNGKey(seed + 1)
+
+
+def adaptation_picks(
+    antmaze: EnvironmentResult, fast: FastAdaptation, seed: int, goal_ids: np.ndarray
+) -> tuple[Any, jax.Array]:
+    """The solutions Bayesian optimisation picked for the goals ``goal_ids`` (a batch of
+    policy parameters) and the keys of the initial states their scored episodes started
+    from, as ``evaluate_policies`` drew them, so ``render.episode_states`` replays the
+    very episodes the scores were read from; a ``ValueError`` for a goal with no pick."""
+    cells = fast.bo_pick[np.asarray(goal_ids)]
+    if (cells < 0).any():
+        raise ValueError(f"goals {np.asarray(goal_ids)[cells < 0]} have no picked solution")
+    genotypes = take(antmaze.methods["QD-PG"].grid["genotypes"], 0)
+    keys = jax.random.split(_adaptation_episodes_key(seed), len(fast.valid))
+    return jax.tree.map(lambda x: x[cells], genotypes), keys[cells]
 
 
 # ----- the thesis's references: a hand-written path, and the chapter's summary -----

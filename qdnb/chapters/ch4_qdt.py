@@ -39,6 +39,7 @@ from qdnb.core.loops import map_concurrently
 from qdnb.core.names import ENV_LABELS
 from qdnb.core.sharding import device_memory_bytes
 from qdnb.envs.player import Player
+from qdnb.envs.rollout import evaluate_policies
 from qdnb.models.qdt.data import (
     NAIVE,
     PRUNINGS,
@@ -310,6 +311,7 @@ class EnvironmentResult:
     generalization: dict[str, QDTRun]
     naive_episodes_per_policy: tuple[int, ...]
     full_seeds: int
+    watched: Any = None  # seed 0's QDT(ME-LS) parameters (its best evaluation's): goal_episodes
     seconds: float = float("nan")
 
     @classmethod
@@ -356,6 +358,7 @@ class EnvironmentResult:
                 s["naive_episodes_per_policy"] for s in per_seed if "naive_episodes_per_policy" in s
             ),
             full_seeds=sum(bool(s["full"]) for s in per_seed),
+            watched=per_seed[0].get("watched"),
         )
 
 
@@ -557,6 +560,7 @@ def run_environment(
             "heldout_mse": gap["heldout_mse"],
             "shuffled_mse": gap["shuffled_mse"],
             "imitation": imitation(targets, play_targets(res.params, targets.padded, k_eval)),
+            "params": res.params,  # (kept for seed 0's QDT(ME-LS) only: the page watches it)
         }
 
     per_seed = []
@@ -622,6 +626,8 @@ def run_environment(
                     k_eval,
                     f"{env_name} seed {i} QDT({name})",
                 )
+            kept = {name: r.pop("params", None) for name, r in seed["qdt"].items()}
+            seed["watched"] = kept.get("ME-LS") if i == 0 else None
             pruned = (
                 {
                     name: prune(
@@ -641,6 +647,7 @@ def run_environment(
                     k_eval,
                     f"{env_name} seed {i} QDT(ME-LS, {name})",
                 )
+                res.pop("params", None)
                 if name in ("tiles", "upper"):
                     res["avg_distance_removed"] = float(res["distance"][removed[name]].mean())
                     res["avg_distance_kept"] = float(res["distance"][~removed[name]].mean())
@@ -650,6 +657,54 @@ def run_environment(
     per_seed += [per_seed[-1]] * (cfg.num_seeds - seeds_run)
     return EnvironmentResult.collect(
         env_name, low, high, np.asarray(zones), np.asarray(goals), removed, per_seed
+    )
+
+
+@dataclass(frozen=True)
+class GoalEpisodes:
+    """One episode per goal of seed 0's QDT(ME-LS) conditioned on it and of its
+    ``demonstrator`` (the kept ME-LS policy whose stored BD is nearest the goal, as the
+    teachers' accuracy picks it), both from the initial state row ``i`` of ``starts``
+    draws: the ``actions`` each played (goals, T, A) and the BDs each ``reached`` (goals,
+    d), for ``render.replay_states`` to replay."""
+
+    goals: np.ndarray
+    starts: jax.Array
+    qdt_actions: np.ndarray
+    qdt_reached: np.ndarray
+    demonstrator_actions: np.ndarray
+    demonstrator_reached: np.ndarray
+
+
+def goal_episodes(
+    cfg: QDTConfig,
+    repro_cfg: ReproducibilityConfig,
+    res: EnvironmentResult,
+    repertoires: dict[str, Any],
+    goal_ids: np.ndarray,
+    key: jax.Array,
+) -> GoalEpisodes:
+    """``GoalEpisodes`` of ``res.goals[goal_ids]`` (``repertoires`` as
+    ``run_environment`` had them); a ``ValueError`` when ``res`` kept no QDT (a
+    dataset that pruning emptied)."""
+    if res.watched is None:
+        raise ValueError(f"{res.env_name}: seed 0's QDT(ME-LS) was not trained")
+    env = repro_cfg.make_env(res.env_name)
+    goals = jnp.asarray(res.goals[np.asarray(goal_ids)])
+    ev = play(env, qdt_model(cfg, env), res.watched, goals, key, 1)  # starts: split(key, G)
+    teachers = seed_repertoire(repertoires["ME-LS"], 0)
+    cells = np.asarray(res.selection["ME-LS"][0].cells)
+    d2 = np.sum((np.asarray(goals)[:, None] - np.asarray(teachers.descriptors)[cells]) ** 2, -1)
+    demonstrator = jax.tree.map(lambda x: x[cells[d2.argmin(axis=1)]], teachers.genotypes)
+    network = MLP(repro_cfg.policy_hidden + (env.action_size,))
+    shown = evaluate_policies(env, network.apply, demonstrator, key, return_trajectory=True)
+    return GoalEpisodes(  # the same starts: split(key, G)
+        np.asarray(goals),
+        jax.random.split(key, len(goals)),
+        np.asarray(ev.trajectory[:, 0]),
+        np.asarray(ev.descriptor[:, 0]),
+        np.asarray(shown.trajectory["action"]),
+        np.asarray(shown.descriptor),
     )
 
 
@@ -764,7 +819,7 @@ def summary_results(cfg: QDTConfig, results_by_env: dict[str, EnvironmentResult]
                 f"to the goals than {QDT_CLAIM_RIVALS[other]} (Table 4.4)",
                 c["holds"],
                 f"{c['QDT(ME-LS)']:.3g} ({c['QDT(ME-LS) range']}) vs {c[other]:.3g} "
-                f"({c[f'{other} range']}) (mean, range over seeds); holds on "
+                f"({c[f'{other} range']}) (mean, range over seeds); the claim's way on "
                 f"{c['seeds where it holds']} seeds",
             )
             for c in checks

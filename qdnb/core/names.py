@@ -129,9 +129,9 @@ def mean_sd(values, digits: int = 1, diverged: int | None = None) -> str:
     lost = v.size - finite.size if diverged is None else diverged
     if not finite.size:
         return "diverged" if lost else "—"
-    text = f"{finite.mean():.{digits}f}"
+    text = f"{finite.mean():,.{digits}f}"  # thousands separated, as number_text writes them
     if finite.size > 1:
-        text += f" ± {finite.std():.{digits}f} ({finite.size} seeds)"
+        text += f" ± {finite.std():,.{digits}f} ({finite.size} seeds)"
     else:
         text += " (1 seed)"
     return text + (f", {lost} diverged" if lost else "")

@@ -1,23 +1,26 @@
-"""Episodes of the robot tasks (Ant-Maze, Ant-Trap, Ant-Omni, Halfcheetah-Uni) drawn from
-their real model, for the book's videos.
+"""Episodes for the book's videos: played and recorded, then, for the robot tasks
+(Ant-Maze, Ant-Trap, Ant-Omni, Halfcheetah-Uni), drawn from their real model.
 
-``episode_states`` plays one policy for one episode, as ``evaluate_policies`` does, and
-keeps the simulator's generalised positions ``q`` at every step; ``render`` draws them with
-MuJoCo's own ``Renderer`` on the MuJoCo model brax built the task from
-(``env.brax_env.sys.mj_model``: the robot, the floor and, in the mazes, the walls, as
-they collide), off-screen through EGL (``MUJOCO_GL=egl``, set by ``qdnb``'s import:
-Mesa's software rasteriser draws it on a machine with no display or GPU).  The choice
-over brax's ``brax.io.image`` (pytinyrenderer, another package to pin, flat shading) is
-that this draws the model the simulation ran, with its materials and lights, and needs
-nothing beyond the MuJoCo brax already installs; ``bench/render.py`` measures it.
-Without a working OpenGL, ``renderer_missing`` says why and the pages skip their robot
-videos, saying so.
+``episode_states`` plays policies for one episode each, as ``evaluate_policies`` does, and
+keeps what ``read`` takes of the state at every step (the simulator's generalised
+positions ``q`` by default; ``episode_path`` keeps a Point-Maze episode's state
+descriptors), held once an episode has ended; ``replay_states`` plays recorded actions
+instead. ``render`` draws the states with MuJoCo's own ``Renderer`` on the MuJoCo model brax
+built the task from (``env.brax_env.sys.mj_model``: the robot, the floor and, in the mazes,
+the walls, as they collide), off-screen through EGL (``MUJOCO_GL=egl``, set by ``qdnb``'s
+import: Mesa's software rasteriser draws it on a machine with no display or GPU).  The
+choice over brax's ``brax.io.image`` (pytinyrenderer, another package to pin, flat shading)
+is that this draws the model the simulation ran, with its materials and lights, and needs
+nothing beyond the MuJoCo brax already installs; ``bench/video.py`` measures it.  Without
+a working OpenGL, ``renderer_missing`` says why and the pages skip their robot videos,
+saying so.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,31 +29,65 @@ import numpy as np
 from qdnb.envs.base import Env
 
 
+def robot_q(state) -> jax.Array:
+    """The simulator's generalised positions ``q`` of a brax task's state."""
+    return state.core.q
+
+
 def episode_states(
-    env: Env, policy_apply, params: Any, keys: jax.Array, length: int | None = None
+    env: Env,
+    policy_apply,
+    params: Any,
+    keys: jax.Array,
+    length: int | None = None,
+    read: Callable[[Any], jax.Array] = robot_q,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Episodes of policies ``params`` (a leading batch axis), each from the initial state
     its row of ``keys`` draws (``env.reset``), for ``length`` steps (the episode's own when
-    ``None``), as ``evaluate_policies`` plays them, in one compiled call: the simulator's
-    positions ``q`` ``(n, steps + 1, nq)``, the reset state's first, held at the last once
-    an episode has ended, and whether each state is still ``alive`` ``(n, steps + 1)``."""
+    ``None``), as ``evaluate_policies`` plays them, in one compiled call: ``read`` of every
+    state ``(n, steps + 1, ...)`` (``q`` by default), the reset state's first, held at the
+    last once an episode has ended, and whether each state is still ``alive``
+    ``(n, steps + 1)``."""
     steps = env.episode_length if length is None else length
+    return _states(env, lambda p, obs, t: policy_apply(p, obs), params, keys, steps, read)
 
-    def one(p, key):
-        def step(carry, _):
+
+def episode_path(env: Env, policy_apply, params: Any, key: jax.Array) -> np.ndarray:
+    """One episode of one policy (``params`` without a batch axis) from the initial state
+    ``key`` draws: its state descriptors ``(episode_length + 1, d)`` (``episode_states``
+    with ``read`` the state descriptor), what a Point-Maze video draws."""
+    batch = jax.tree.map(lambda x: jnp.asarray(x)[None], params)
+    path, _ = episode_states(env, policy_apply, batch, key[None], read=lambda s: s.state_descriptor)
+    return path[0]
+
+
+def replay_states(env: Env, actions: Any, keys: jax.Array) -> tuple[np.ndarray, np.ndarray]:
+    """``episode_states`` of recorded ``actions`` ``(n, T, A)``: row ``i`` played from the
+    initial state row ``i`` of ``keys`` draws, action ``t`` at step ``t`` (a model that is
+    not a policy network, the QDT say, is watched this way from the actions it played)."""
+    actions = jnp.asarray(actions)
+    return _states(env, lambda a, obs, t: a[t], actions, keys, actions.shape[1], robot_q)
+
+
+def _states(env: Env, act, rows: Any, keys: jax.Array, steps: int, read):
+    """``episode_states``' loop: ``act(row, obs, t)`` is row's action at step ``t``."""
+
+    def one(row, key):
+        def step(carry, t):
             state, alive = carry
-            nxt = env.step(state, policy_apply(p, state.obs))
+            nxt = env.step(state, act(row, state.obs, t))
             alive = alive & ~state.done
-            return (nxt, alive), (nxt.core.q, alive & ~nxt.done)
+            return (nxt, alive), (read(nxt), alive & ~nxt.done)
 
         first = env.reset(key)
-        _, (qs, alive) = jax.lax.scan(step, (first, jnp.ones((), bool)), None, length=steps)
+        init = (first, jnp.ones((), bool))
+        _, (qs, alive) = jax.lax.scan(step, init, jnp.arange(steps))
         return (
-            jnp.concatenate([first.core.q[None], qs]),
+            jnp.concatenate([read(first)[None], qs]),
             jnp.concatenate([jnp.ones(1, bool), alive]),
         )
 
-    qs, alive = jax.device_get(jax.jit(jax.vmap(one))(params, keys))
+    qs, alive = jax.device_get(jax.jit(jax.vmap(one))(rows, keys))
     qs, alive = np.array(qs), np.array(alive)
     for q, a in zip(qs, alive):  # the state that ended an episode is its last: hold it
         ended = np.flatnonzero(~a)
@@ -59,8 +96,10 @@ def episode_states(
     return qs, alive
 
 
+@functools.cache
 def renderer_missing() -> str | None:
-    """Why robots cannot be drawn here (no OpenGL off screen), or ``None`` when they can."""
+    """Why robots cannot be drawn here (no OpenGL off screen), or ``None`` when they can
+    (asked once a process: the answer does not change while it runs)."""
     try:
         import mujoco
 
@@ -72,11 +111,16 @@ def renderer_missing() -> str | None:
     return None
 
 
+RED = np.array([0.85, 0.1, 0.1, 1.0], np.float32)  # a goal, or a promised end
+BLUE = np.array([0.1, 0.3, 0.9, 1.0], np.float32)  # the robot, seen from afar
+
+
 @dataclass(frozen=True)
 class Camera:
     """Where the camera looks from: ``distance`` (m) from the point it looks at,
     ``elevation`` and ``azimuth`` (degrees, MuJoCo's convention); ``lookat`` a fixed
-    point, or ``None`` to follow the robot's torso (its first three coordinates)."""
+    point, or ``None`` to follow the robot's torso (the model's first body: the Ant's
+    free joint and the Halfcheetah's planar one place it differently in ``q``)."""
 
     distance: float = 4.0
     elevation: float = -30.0
@@ -91,12 +135,17 @@ def render(
     height: int = 150,
     camera: Camera = Camera(),
     marks: tuple[tuple[float, float], ...] = (),
+    mark_radius: float | None = None,
+    torso_mark: bool = False,
 ) -> np.ndarray:
     """The states ``qs`` ``(T, nq)`` of ``env``'s robot as RGB frames ``(T, height,
     width, 3)``, drawn by MuJoCo from ``env.brax_env.sys.mj_model`` (``RuntimeError`` where
     it cannot draw: ``renderer_missing``), with a red disc on the floor at each of
-    ``marks`` ``(x, y)`` (where a policy promised to end, say); the discs are drawn, not
-    simulated."""
+    ``marks`` ``(x, y)`` (where a policy promised to end, say), of ``mark_radius`` metres
+    (by default 4 % of the camera's distance, so a disc keeps its size on screen as the
+    camera backs away), and, with ``torso_mark``, a blue one under the torso at every frame
+    (where the camera is far enough for the robot to be lost in the maze); the discs are
+    drawn, not simulated."""
     import mujoco
 
     why = renderer_missing()
@@ -107,23 +156,29 @@ def render(
     view = mujoco.MjvCamera()
     view.type = mujoco.mjtCamera.mjCAMERA_FREE
     view.distance, view.elevation, view.azimuth = camera.distance, camera.elevation, camera.azimuth
+    radius = 0.04 * camera.distance if mark_radius is None else mark_radius
+    if radius <= 0:
+        raise ValueError(f"mark_radius must be positive, got {radius}")
     frames = np.empty((len(qs), height, width, 3), np.uint8)
     with mujoco.Renderer(model, height, width) as renderer:
         for t, q in enumerate(np.asarray(qs)):
             data.qpos[:] = q
             mujoco.mj_forward(model, data)
-            view.lookat[:] = camera.lookat if camera.lookat is not None else data.qpos[:3]
+            view.lookat[:] = camera.lookat if camera.lookat is not None else data.xpos[1]
             renderer.update_scene(data, camera=view)
-            for x, y in marks:
+            discs = [(x, y, RED) for x, y in marks]
+            if torso_mark:
+                discs.append((data.xpos[1][0], data.xpos[1][1], BLUE))
+            for x, y, colour in discs:
                 scene = renderer.scene
                 if scene.ngeom < scene.maxgeom:
                     mujoco.mjv_initGeom(
                         scene.geoms[scene.ngeom],
                         mujoco.mjtGeom.mjGEOM_CYLINDER,
-                        np.array([0.2, 0.005, 0.0]),
-                        np.array([x, y, 0.005]),
+                        np.array([radius, 0.005, 0.0]),
+                        np.array([x, y, 0.006 if colour is BLUE else 0.005]),
                         np.eye(3).ravel(),
-                        np.array([0.85, 0.1, 0.1, 1.0], np.float32),
+                        colour,
                     )
                     scene.ngeom += 1
             frames[t] = renderer.render()

@@ -186,21 +186,3 @@ def evaluate_episodes(
         lambda k: evaluate_policies(env, policy_apply, params, k, return_trajectory)
     )(keys)
     return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), per_episode)
-
-
-def episode_path(env: Env, policy_apply: PolicyApply, params: Any, key: jax.Array) -> Any:
-    """One episode of one policy (``params`` without a batch axis) from the initial state
-    ``key`` draws, as ``evaluate_policies`` plays it: its state descriptors, the reset
-    state's first, ``(episode_length + 1, d)``, held at the last once the episode has
-    ended (what a video of it shows)."""
-    import numpy as np
-
-    ev = evaluate_policies(
-        env, policy_apply, jax.tree.map(lambda x: x[None], params), key, return_trajectory=True
-    )
-    traj = jax.device_get(ev.trajectory)
-    path = np.concatenate([traj["state_descriptor"][0, :1], traj["next_state_descriptor"][0]])
-    # path[t + 1] follows step t, which counted while valid[t]: the last state that counts
-    last = int(np.flatnonzero(np.concatenate([[True], traj["valid"][0]]))[-1])
-    path[last + 1 :] = path[last]
-    return path
