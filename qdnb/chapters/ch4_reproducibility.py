@@ -503,7 +503,8 @@ def summary_results(
                 f"ch4/{env_name}/{ls}/{metric}",
                 f"{ENV_LABELS[env_name]}: {CLAIM_STATEMENTS[metric].format(ls=ls, base=base)}",
                 c["holds"],
-                f"{c['values (mean)']} (mean); the claim's way on {c['seeds where it holds']} seeds",
+                f"{c['values (mean)']} (mean); the claim's way on "
+                f"{c['seeds where it holds']} seeds",
             )
             for (env_name, ls, base, metric), c in zip(comparisons(results_by_env), checks)
         ],

@@ -70,16 +70,16 @@ def enlarge(frames: np.ndarray, factor: int) -> np.ndarray:
     return np.repeat(np.repeat(frames, factor, axis=1), factor, axis=2)
 
 
-def titled(frames: np.ndarray, text: str, band: int = 18) -> np.ndarray:
+def titled(frames: np.ndarray, text: str, band: int = 20) -> np.ndarray:
     """RGB ``frames`` under a white band ``band`` pixels high with ``text`` centred in
-    it (Pillow's default font at 70 % of the band), the same on every frame."""
+    it (Pillow's default font at 65 % of the band), the same on every frame."""
     from PIL import Image, ImageDraw, ImageFont
 
     frames = rgb_frames(frames)
     width = frames.shape[2]
     image = Image.new("RGB", (width, band), "white")
     draw = ImageDraw.Draw(image)
-    font = ImageFont.load_default(size=round(band * 0.7))
+    font = ImageFont.load_default(size=round(band * 0.65))
     left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
     xy = ((width - (right - left)) / 2, (band - (bottom - top)) / 2 - top)
     draw.text(xy, text, fill="black", font=font)

@@ -219,7 +219,8 @@ class FlowLeniaConfig:
                 "patch": "one uniform h vector for the whole patch",
                 "cell": "an independent uniform h vector per cell",
             }[self.p0],
-            "flow_bound": f"F and dt·F clipped per axis to reach − s = {self.flow_bound:g}: "
+            "flow_bound": f"F and dt·F clipped per axis to ±(reach − s) = ±({self.reach} − "
+            f"{self.s:g}) = ±{self.flow_bound:g}: "
             f"at most {self.max_displacement:.3g} cells per step",
             "kernels": f"radius {self.radius_scale:g}·(R + {self.radius_offset:g})·r, rings "
             "b·exp(−(D − a)² / w), edge σ(−10·(D − 1))",
