@@ -14,7 +14,7 @@ never on the runs the notebooks evaluate (its seeds are its own).
    method on the mean over seeds (``cells_for_coverage``).
 
 The chosen values are then written by hand into the chapter's ``SCALES``
-(``qdnb/chapters/ch4_reproducibility.py``) (they are not
+(``qdnb/chapters/ch4_reproducibility/settings.py``) (they are not
 read back from this file at run time).  Writes ``bench/results/ant_omni_reach.json``.
 
     python bench/ant_omni_reach.py [--scale small] [--cells 32 64 128]

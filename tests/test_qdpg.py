@@ -505,7 +505,7 @@ def test_the_sweep_script_runs_a_tiny_grid_resumes_and_selects(tmp_path):
 def test_maze_regions_split_the_maze_at_the_walls():
     """maze_regions on hand-placed points: a point stopped on the upper wall's
     lower face is between the walls, one on its upper face above; the shares of
-    bench/qdpg_reach.py are the masks' means."""
+    bench/probes/qdpg_reach.py are the masks' means."""
     import importlib.util
 
     from qdnb.envs.pointmaze import maze_regions
@@ -527,7 +527,7 @@ def test_maze_regions_split_the_maze_at_the_walls():
     assert masks["above the upper wall"].tolist() == [False, False, False, False, True, True]
     assert maze_regions(points.reshape(2, 3, 2))["between the walls"].shape == (2, 3)
 
-    path = Path(__file__).parents[1] / "bench" / "qdpg_reach.py"
+    path = Path(__file__).parents[1] / "bench" / "probes" / "qdpg_reach.py"
     spec = importlib.util.spec_from_file_location("qdpg_reach", path)
     reach = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(reach)
@@ -758,7 +758,7 @@ def test_coverage_counts_the_reachable_cells():
 
 
 def test_the_coupling_ab_runs_its_variants_picks_by_its_rule_and_resumes(tmp_path, monkeypatch):
-    """bench/qdpg_coupling.py at tiny: (a), (b), (c), then (d) on the variant its rule
+    """bench/probes/qdpg_coupling.py at tiny: (a), (b), (c), then (d) on the variant its rule
     picks, each on the same seeds; a second call skips what is done."""
     import importlib.util
     import json
@@ -766,7 +766,9 @@ def test_the_coupling_ab_runs_its_variants_picks_by_its_rule_and_resumes(tmp_pat
 
     bench = Path(__file__).parents[1] / "bench"
     monkeypatch.syspath_prepend(str(bench))
-    spec = importlib.util.spec_from_file_location("qdpg_coupling", bench / "qdpg_coupling.py")
+    spec = importlib.util.spec_from_file_location(
+        "qdpg_coupling", bench / "probes" / "qdpg_coupling.py"
+    )
     ab = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ab)
     out = tmp_path / "ab.json"

@@ -1,7 +1,7 @@
-"""Every local device: a loop of each kind (``bench/devices_probe.py``: the GA, Novelty Search,
-MAP-Elites and PGA-ME on Point-Maze, a Brax MAP-Elites loop, QD-PG, ME-ES, the FLT's and the
-QDT's training steps) on 1 device and, twice, on 2 (CPU devices forced by ``XLA_FLAGS``,
-each run in its own process).
+"""Every local device: a loop of each kind (``bench/probes/devices_probe.py``: the GA, Novelty
+Search, MAP-Elites and PGA-ME on Point-Maze, a Brax MAP-Elites loop, QD-PG, ME-ES, the FLT's
+and the QDT's training steps) on 1 device and, twice, on 2 (CPU devices forced by
+``XLA_FLAGS``, each run in its own process).
 
 - Same seed, same numbers at a device count: the two 2-device runs agree bit for bit.
 - Across counts, bit for bit where each device computes its share as one device computes
@@ -32,14 +32,14 @@ LEARNING_RATE = 1e-3  # the probe's QDT step
 
 
 def probe(tmp_path, counts=(1, 2, 2)):
-    """Run ``bench/devices_probe.py`` at each device count of ``counts``, side by side."""
+    """Run ``bench/probes/devices_probe.py`` at each device count of ``counts``, side by side."""
     procs = []
     for i, n in enumerate(counts):
         env = dict(os.environ, JAX_PLATFORMS="cpu")
         env["XLA_FLAGS"] = sharding.with_device_count(env.get("XLA_FLAGS", ""), n)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         out = tmp_path / f"{i}-{n}.npz"
-        cmd = [sys.executable, str(ROOT / "bench" / "devices_probe.py"), str(out)]
+        cmd = [sys.executable, str(ROOT / "bench" / "probes" / "devices_probe.py"), str(out)]
         procs.append((subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True), out))
     results = []
     for proc, out in procs:

@@ -32,7 +32,7 @@ and Halfcheetah):
   only the forward term), pays 1 per step alive.  Without it, termination would
   reward falling: -sum ||a_t|| over fewer steps is a higher fitness, and on the
   spring pipeline more than half of the elites' episodes ended early that way
-  (``bench/ant_omni_termination.py``), against the thesis's "an optimal policy
+  (``bench/probes/ant_omni_termination.py``), against the thesis's "an optimal policy
   would simply remain static".  So the step reward is 1 - ||a_t||_2 (what TD3
   learns from, as in QDax) and the fitness takes the constant 250 back
   (``fitness_shift``): Eq. 4.2 exactly for a full episode, Eq. 4.2 minus one per
@@ -57,7 +57,7 @@ and Halfcheetah):
     against 0.14's ``spring``, the fastest pipeline on CPU here), and the Ant's
     masses and gears (v1: 18 kg, gear 350; brax 0.14's ant.xml: 0.9 kg from its
     geoms' density, gear 150): v1's gear on 0.14's light ant would be a different
-    robot, so the Ant keeps brax 0.14's.  ``bench/halfcheetah_probe.py`` measures
+    robot, so the Ant keeps brax 0.14's.  ``bench/probes/halfcheetah_probe.py`` measures
     what the changes do to the starting policies' descriptors.
 - **observations**: the torso's height, orientation and velocities, the joint
   angles and velocities, and not the torso's x, y (brax's

@@ -21,7 +21,7 @@ descriptors, filtered by novelty, to the FIFO archive (Section 3.6.3).
 - ``"quality"``: Q-PG, quality updates only.
 
 ``coupling`` says how the critics meet the actors (measured side by side in
-``bench/qdpg_coupling.py``):
+``bench/probes/qdpg_coupling.py``):
 
 - ``"thesis"`` (QD-PG): "Every time a policy gradient is computed, QD-PG also
   updates the corresponding critic", the critics being "shared among the

@@ -23,7 +23,7 @@ early and why:
 
 Writes ``bench/results/ant_omni_termination.json``.
 
-    python bench/ant_omni_termination.py [--scale small] [--episodes 4] [--random 64]
+    python bench/probes/ant_omni_termination.py [--scale small] [--episodes 4] [--random 64]
 """
 
 from __future__ import annotations
@@ -149,7 +149,9 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--random", type=int, default=64)
     parser.add_argument(
-        "--out", type=Path, default=Path(__file__).parent / "results" / "ant_omni_termination.json"
+        "--out",
+        type=Path,
+        default=Path(__file__).parents[1] / "results" / "ant_omni_termination.json",
     )
     args = parser.parse_args()
     key = jax.random.PRNGKey(2_000)

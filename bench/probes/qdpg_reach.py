@@ -12,7 +12,7 @@ upper wall's end (x > 0.5, between the walls), and above the upper wall
 transition first started above the upper wall.  Writes
 ``bench/results/qdpg_reach.json``.
 
-    python bench/qdpg_reach.py [--steps 1000000] [--methods D-PG QD-PG]
+    python bench/probes/qdpg_reach.py [--steps 1000000] [--methods D-PG QD-PG]
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=["D-PG", "QD-PG"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_reach.json"
+        "--out", type=Path, default=Path(__file__).parents[1] / "results" / "qdpg_reach.json"
     )
     args = parser.parse_args()
     cfg = config("ch3_qdpg", args.scale)

@@ -38,7 +38,7 @@ seed instead of 125 for ME-LS on Ant-Omni).  The thesis plays 10 episodes for ea
 the whole page went from 1,122 s to 1,096 s, within one run's noise.  The host player stays
 (fewer compilations, the same numbers).
 
-    python bench/ch4_tests.py [--chunks 16 32 64] [--label 'host player']
+    python bench/probes/ch4_tests.py [--chunks 16 32 64] [--label 'host player']
 
 Writes bench/results/ch4_tests.json.
 """
@@ -53,7 +53,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-OUT = Path(__file__).parent / "results" / "ch4_tests.json"
+OUT = Path(__file__).parents[1] / "results" / "ch4_tests.json"
 PER_EPISODE_TOLERANCE = 1.10  # a smaller chunk's seconds per episode, at most this x the largest's
 MIN_SAVING = 0.25  # lean must play at least this share fewer episodes
 

@@ -18,7 +18,7 @@ bins of the 4 x 4 grid on [0, 1]^2 hit.  The QDax rows were measured once with
 ``qdax==0.5.0`` on brax v1 (its ``FeetContactWrapper``) and are copied from the
 issue for comparison, marked as such.  Writes ``bench/results/halfcheetah_probe.json``.
 
-    python bench/halfcheetah_probe.py
+    python bench/probes/halfcheetah_probe.py
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def main() -> None:
     for name, (env, activation) in rows.items():
         out["ours"][name] = probe(env, activation, key)
         print(f"{name:55s}", out["ours"][name], flush=True)
-    path = Path(__file__).parent / "results" / "halfcheetah_probe.json"
+    path = Path(__file__).parents[1] / "results" / "halfcheetah_probe.json"
     write_result(path, out)
     print("wrote", path)
 

@@ -1,7 +1,8 @@
 """Probe for planning Chapter 4: ME vs ME-LS on Ant-Omni with Table 4.1 settings (batch 1000,
 [256, 256] policies, 1024 CVT cells, E = 10), each run for a wall-time budget, then the accuracy
 experiment (100 CVT goals, 10 episodes) and the reassessment.  Not the chapter notebook: equal
-wall time, not equal environment steps.  Usage: python bench/me_vs_mels_probe.py SECONDS OUT.json
+wall time, not equal environment steps.
+Usage: python bench/probes/me_vs_mels_probe.py SECONDS OUT.json
 (bench/results/me_vs_mels_probe_h100.json: 180 s each on one H100, jax 0.11.2, brax 0.14.2)."""
 
 import sys

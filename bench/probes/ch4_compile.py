@@ -16,7 +16,7 @@ The rule, written before the runs: the page takes ``opt0`` if its projected time
 evaluations (each method's fixed seconds + 10 x its seconds an evaluation, on the measured
 robot and seed, summed over the methods) is at least 10 % below ``page``'s.
 
-    python bench/ch4_compile.py [--env ant_omni] [--iterations 1 3]
+    python bench/probes/ch4_compile.py [--env ant_omni] [--iterations 1 3]
 
 Writes bench/results/ch4_compile.json.
 """
@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 SETTINGS = {"page": "", "opt0": "--xla_backend_optimization_level=0"}
-OUT = Path(__file__).parent / "results" / "ch4_compile.json"
+OUT = Path(__file__).parents[1] / "results" / "ch4_compile.json"
 COMPILED = re.compile(r"Finished XLA compilation of (.+?) in ([\d.]+) sec")
 
 

@@ -9,7 +9,7 @@ outside the project, e.g.
     python3.11 -m venv /tmp/qdaxenv
     /tmp/qdaxenv/bin/pip install qdax==0.5.0 jax==0.4.28 jaxlib==0.4.28 brax==0.10.4 \\
         flax==0.8.5
-    /tmp/qdaxenv/bin/python bench/qdax_qdpg.py [--seeds 0 1 2 3] [--iterations 100]
+    /tmp/qdaxenv/bin/python bench/probes/qdax_qdpg.py [--seeds 0 1 2 3] [--iterations 100]
 
 The example's settings: episodes of 250 steps; each iteration 34 quality-PG, 33
 diversity-PG and 33 isoline (GA) offspring (100 episodes, 25,000 steps); 1,024 CVT
@@ -43,8 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-RESULTS = Path(__file__).parent / "results" / "qdax_qdpg.json"
-CHECKPOINTS = Path(__file__).parent.parent / "data" / "runs" / "bench" / "qdax_qdpg"
+RESULTS = Path(__file__).parents[1] / "results" / "qdax_qdpg.json"
+CHECKPOINTS = Path(__file__).parents[2] / "data" / "runs" / "bench" / "qdax_qdpg"
 SAVE_EVERY = 10
 SETTINGS = dict(
     env_name="pointmaze",

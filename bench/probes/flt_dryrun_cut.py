@@ -9,7 +9,7 @@ and writes, for each, the seconds of a full batch's step that the cut projects
 (``steady_s * batch_size / batch``) beside the full batch's own.  The system is any
 sampled one: a step's cost does not depend on its parameters.
 
-    python bench/flt_dryrun_cut.py [--batches 4 8 32] [--variant]
+    python bench/probes/flt_dryrun_cut.py [--batches 4 8 32] [--variant]
 
 The cut in force is ``DRY_RUN_EPISODES``, chosen from this benchmark's numbers.
 
@@ -65,7 +65,7 @@ def main():
         rows.append(row)
     name = "flt_dryrun_cut_variant.json" if args.variant else "flt_dryrun_cut.json"
     write_result(
-        Path(__file__).parent / "results" / name,
+        Path(__file__).parents[1] / "results" / name,
         {
             "benchmark": "flt_dryrun_cut",
             "model": "ours (variant)" if args.variant else "the thesis's FLT",

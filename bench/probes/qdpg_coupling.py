@@ -36,8 +36,8 @@ grid's reachable cells, and per variant the wall time (compilation included) and
 compiled seconds per iteration.  Writes ``bench/results/qdpg_coupling.json`` after
 every variant and skips those already in it, so an interrupted run resumes.
 
-    python bench/qdpg_coupling.py [--seeds 6] [--steps 1000000]
-    python bench/qdpg_coupling.py --scale tiny --steps 8000 --seeds 2 --out /tmp/x.json
+    python bench/probes/qdpg_coupling.py [--seeds 6] [--steps 1000000]
+    python bench/probes/qdpg_coupling.py --scale tiny --steps 8000 --seeds 2 --out /tmp/x.json
 """
 
 from __future__ import annotations
@@ -45,12 +45,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
-from qdpg_sweep import summarise
+
+sys.path.insert(0, str(Path(__file__).parents[1]))  # bench/, where the sweep it reuses lives
+from qdpg_sweep import summarise  # noqa: E402
 
 from qdnb.book.provenance import git_sha, write_result
 from qdnb.book.registry import config
@@ -115,7 +118,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument(
-        "--out", type=Path, default=Path(__file__).parent / "results" / "qdpg_coupling.json"
+        "--out", type=Path, default=Path(__file__).parents[1] / "results" / "qdpg_coupling.json"
     )
     parser.add_argument("--skip-ratio", action="store_true", help="do not time Table 3.2's ratio")
     parser.add_argument("--extra", action="store_true", help="also run the EXTRA variants")

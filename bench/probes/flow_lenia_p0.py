@@ -20,7 +20,7 @@ mean of the final frames' squared value):
 Writes the medians over systems, how many meet all the criteria, the system each
 variant keeps, and every system's numbers to ``bench/results/flow_lenia_p0.json``.
 
-    python bench/flow_lenia_p0.py [--scale small] [--candidates 16] [--probes 8]
+    python bench/probes/flow_lenia_p0.py [--scale small] [--candidates 16] [--probes 8]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def main():
     parser.add_argument("--probes", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--out", type=Path, default=Path(__file__).parent / "results" / "flow_lenia_p0.json"
+        "--out", type=Path, default=Path(__file__).parents[1] / "results" / "flow_lenia_p0.json"
     )
     args = parser.parse_args()
     base = config("ch5_flow_lenia", args.scale).world

@@ -6,7 +6,7 @@ and in a notebook of one cell executed by papermill with the kernel spec
 chunk's seconds per iteration of each, the statistic the notebook reports.
 Writes ``bench/results/kernel_rate.json``.
 
-    python bench/kernel_rate.py [--scale small] [--iterations 120]
+    python bench/probes/kernel_rate.py [--scale small] [--iterations 120]
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def main() -> None:
         "seconds_per_iteration": rates,
         "kernel_over_process": rates["in a papermill kernel"] / rates["in this process"],
     }
-    path = Path(__file__).parent / "results" / "kernel_rate.json"
+    path = Path(__file__).parents[1] / "results" / "kernel_rate.json"
     write_result(path, record)
     print(json.dumps(record, indent=1))
 

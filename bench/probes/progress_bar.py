@@ -6,7 +6,7 @@ median chunk's seconds per iteration of each (measured: the three agree within
 the loop's run-to-run spread, so ``qdnb.core.loops`` keeps tqdm's defaults).
 Writes ``bench/results/progress_bar.json``.
 
-    python bench/progress_bar.py [--scale small] [--iterations 120]
+    python bench/probes/progress_bar.py [--scale small] [--iterations 120]
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def main() -> None:
         "monitor_over_no_bar": rates["bar with the monitor thread"] / rates["no bar"],
         "no_monitor_over_no_bar": rates["bar without it"] / rates["no bar"],
     }
-    path = Path(__file__).parent / "results" / "progress_bar.json"
+    path = Path(__file__).parents[1] / "results" / "progress_bar.json"
     write_result(path, result)
     print(json.dumps(result, indent=1))
 

@@ -10,7 +10,7 @@ own, outside the project (issue 36), e.g.
     python3.11 -m venv /tmp/qdaxenv
     /tmp/qdaxenv/bin/pip install qdax==0.5.0 jax==0.4.28 jaxlib==0.4.28 brax==0.10.4 \\
         flax==0.8.5 mujoco==3.1.6 mujoco-mjx==3.1.6
-    /tmp/qdaxenv/bin/python bench/qdax_reference.py
+    /tmp/qdaxenv/bin/python bench/probes/qdax_reference.py
 
 Writes ``bench/results/qdax_reference.json``.
 """
@@ -128,7 +128,7 @@ def main() -> None:
     parser.add_argument("--episode-length", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument(
-        "--out", type=Path, default=Path(__file__).parent / "results" / "qdax_reference.json"
+        "--out", type=Path, default=Path(__file__).parents[1] / "results" / "qdax_reference.json"
     )
     args = parser.parse_args()
     rows = []

@@ -1,7 +1,7 @@
 """SGD (Table 3.2) against Adam for QD-PG's networks on Point-Maze, at the `small`
 scale's budget and gradient steps.  Writes ``bench/results/qdpg_optimizer.json``.
 
-    python bench/qdpg_optimizer.py [--methods D-PG,QD-PG] [--seed 0]
+    python bench/probes/qdpg_optimizer.py [--methods D-PG,QD-PG] [--seed 0]
 
 For each method and optimiser: the final performance, whether an episode ended in
 the exit zone, the first environment step at which one did, and the grid coverage.
@@ -70,7 +70,7 @@ def main() -> None:
                 }
             )
             print(rows[-1], flush=True)
-    out = Path(__file__).parent / "results" / "qdpg_optimizer.json"
+    out = Path(__file__).parents[1] / "results" / "qdpg_optimizer.json"
     out.parent.mkdir(exist_ok=True)
     write_result(
         out,
