@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "import":
             print(f"imported: {publish.import_archive(args.archive, args.replace)}")
         elif args.command == "dryrun":
-            from qdnb.book import dryrun
+            from qdnb.book import dryrun_report as dryrun
             from qdnb.core.config import check_scale
 
             check_scale(args.scale)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from qdnb.book import dryrun as report
+from qdnb.book import dryrun_report as report
 from qdnb.core import dryrun
 from qdnb.core.loops import scan_in_chunks
 
@@ -367,14 +367,18 @@ def test_the_es_ant_generations_are_cut_only_in_a_dry_run(tmp_path, monkeypatch)
     cfg = es.SCALES["paper"]
     generations = lambda t: t.num_steps // (t.num_actors * t.episode_length)
     monkeypatch.delenv(dryrun.ENV, raising=False)
-    tasks, share = es.dry_run_tasks(cfg, "antmaze")
-    assert tasks.antmaze.num_actors == 10_000 and share == 1
+    tasks, whole = es.dry_run_tasks(cfg, "antmaze")
+    assert tasks.antmaze.num_actors == 10_000 and whole.kept == whole.full == 10_000
     monkeypatch.setenv(dryrun.ENV, str(tmp_path / "loops.jsonl"))
-    cut, share = es.dry_run_tasks(cfg, "antmaze")
+    cut_tasks, cut = es.dry_run_tasks(cfg, "antmaze")
     kept = es.DRY_RUN_ANT_PERTURBATIONS
-    assert cut.antmaze.num_actors == kept and share == 10_000 / kept
-    assert generations(cut.antmaze) == generations(tasks.antmaze) == 1000
-    assert es.dry_run_tasks(cfg, "pointmaze")[0].pointmaze.num_actors == 10_000
+    assert cut_tasks.antmaze.num_actors == cut.kept == kept and cut.full == 10_000
+    assert generations(cut_tasks.antmaze) == generations(tasks.antmaze) == 1000
+    with cut.counted():  # each loop inside stands for the 10,000 perturbations side by side
+        assert dryrun.repeat_factor() == dryrun.memory_factor() == 10_000 / kept
+        assert dryrun.state_factor() == 1  # the perturbations share their centre's state
+    pointmaze, never = es.dry_run_tasks(cfg, "pointmaze")
+    assert pointmaze.pointmaze.num_actors == never.kept == never.full == 10_000
 
 
 def test_a_step_too_big_for_this_machine_is_reported_not_run(records, monkeypatch):

@@ -19,6 +19,7 @@ from qdnb.chapters.ch5_flow_lenia import (
     SystemCriteria,
     centre_of_mass,
     evaluate,
+    experiment,
     pattern_descriptors,
     pick_system,
     spearman,
@@ -323,8 +324,8 @@ def test_run_calls_the_notebook_stages_in_order_with_its_keys(monkeypatch):
         ("evaluate", held_out),
         ("diagnose", None),
     ):
-        monkeypatch.setattr(chapter, name, record(name, value))
-    monkeypatch.setattr(chapter, "surprise_search", lambda cfg, model: search)
+        monkeypatch.setattr(experiment, name, record(name, value))  # where ``run`` reads them
+    monkeypatch.setattr(experiment, "surprise_search", lambda cfg, model: search)
     key = jax.random.PRNGKey(7)
     result = chapter.run(config_for_run(), key, progress=False)
     keys = jax.random.split(key, 5)

@@ -165,7 +165,7 @@ def test_the_paper_page_lists_published_runs_with_where_and_when(runs):
 
 
 def test_a_published_run_gives_its_loops_their_measured_time(runs):
-    from qdnb.book import dryrun
+    from qdnb.book import dryrun_report as dryrun
 
     fake_run(results={"headline": "it ran", "ME": {"wall_time_s": 36.0}})
     publish.publish("tiny", "ch2_primer")

@@ -32,7 +32,7 @@ def finished_run(scale="small", name="ch2_primer", **changes):
 
 def test_the_code_of_a_verdict_is_what_computes_not_what_presents():
     files = {str(f.relative_to(paths.ROOT)) for f in verdicts.computation_files("ch4_qdt")}
-    assert "notebooks/ch4_qdt.ipynb" in files and "qdnb/chapters/ch4_qdt.py" in files
+    assert "notebooks/ch4_qdt.ipynb" in files and "qdnb/chapters/ch4_qdt/experiment.py" in files
     assert "qdnb/qd/map_elites.py" in files  # imported through the chapter's algorithms
     assert not [f for f in files if f.startswith(("qdnb/book/", "qdnb/plotting/"))]
     assert "qdnb/models/lenia/flow_lenia.py" not in files  # another chapter's

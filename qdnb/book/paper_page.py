@@ -1,4 +1,4 @@
-"""Reading a dry run's report (``qdnb.book.dryrun``): the per-chapter and per-loop
+"""Reading a dry run's report (``qdnb.book.dryrun_report``): the per-chapter and per-loop
 tables of the book's "Running at paper scale" page, and the terminal's."""
 
 from __future__ import annotations

@@ -138,8 +138,8 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
     qdpg, status = load_or_recompute_qdpg(cfg.tasks, scale, seed, progress, ENVIRONMENTS)
     evolution = {}
     for i, env_name in enumerate(("pointmaze", "antmaze")):
-        tasks, share = dry_run_tasks(cfg, env_name)
-        with dryrun.repeats(share, side_by_side=True, shared_state=True):
+        tasks, cut = dry_run_tasks(cfg, env_name)
+        with cut.counted():
             evolution[env_name] = run_environment(
                 tasks,
                 env_name,
@@ -158,28 +158,27 @@ def run(cfg: EvolutionConfig, scale: str, seed: int, progress: bool = True) -> R
 DRY_RUN_ANT_PERTURBATIONS = 100
 
 
-def dry_run_tasks(cfg: EvolutionConfig, env_name: str) -> tuple[QDPGConfig, float]:
-    """``cfg.es_tasks(env_name)``, and 1.  In a dry run (``qdnb.core.dryrun``) at paper
-    scale one Ant-Maze generation (10,000 policies of 256x256 units, 3,000 steps each)
-    takes about 20 minutes on two CPU cores, three methods an hour: there its
-    perturbations, independent episodes side by side, are cut to
-    ``DRY_RUN_ANT_PERTURBATIONS`` (the generations kept as many), and each loop's time
-    and memory count ``10,000 / 100`` times (the factor returned).  On a GPU nothing is
-    cut."""
+def dry_run_tasks(cfg: EvolutionConfig, env_name: str) -> tuple[QDPGConfig, dryrun.BatchCut]:
+    """``cfg.es_tasks(env_name)`` and its generations' ``BatchCut``.  In a dry run
+    (``qdnb.core.dryrun``) at paper scale one Ant-Maze generation (10,000 policies of
+    256x256 units, 3,000 steps each) takes about 20 minutes on two CPU cores, three
+    methods an hour: there its perturbations, independent episodes side by side, are cut
+    to ``DRY_RUN_ANT_PERTURBATIONS`` (the generations kept as many), and each loop's time
+    and memory count ``10,000 / 100`` times (the cut's ``counted``).  Point-Maze's are
+    never cut, and a GPU cuts nothing."""
     tasks = cfg.es_tasks(env_name)
-    if env_name == "pointmaze" or jax.default_backend() != "cpu":
-        return tasks, 1.0
-    full = cfg.ant_perturbations
-    kept = dryrun.count(
+    if env_name == "pointmaze":
+        return tasks, dryrun.BatchCut(cfg.num_perturbations, cfg.num_perturbations)
+    cut = dryrun.cut_batch(
         "Ant-Maze ES perturbations per generation (side by side)",
-        full,
+        cfg.ant_perturbations,
         DRY_RUN_ANT_PERTURBATIONS,
     )
-    if kept == full:
-        return tasks, 1.0
+    if cut.kept == cut.full:
+        return tasks, cut
     t = tasks.antmaze
-    ant = dataclasses.replace(t, num_actors=kept, num_steps=t.num_steps * kept // full)
-    return dataclasses.replace(tasks, antmaze=ant), full / kept
+    ant = dataclasses.replace(t, num_actors=cut.kept, num_steps=t.num_steps * cut.kept // cut.full)
+    return dataclasses.replace(tasks, antmaze=ant), cut
 
 
 def mean_steps(steps: np.ndarray) -> float:

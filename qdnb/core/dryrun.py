@@ -1,7 +1,7 @@
 """Dry runs: every long loop of a notebook runs its first step(s) at a scale's real
 shapes, its cost is measured, and the rest is skipped.
 
-``python -m qdnb dryrun`` (``qdnb.book.dryrun``) executes a notebook with
+``python -m qdnb dryrun`` (``qdnb.book.dryrun_report``) executes a notebook with
 ``QDNB_DRYRUN`` naming a file; from then on, in that kernel:
 
 - ``scan_in_chunks`` compiles its step as a one-step ``lax.scan`` (the chunk's own
@@ -28,6 +28,7 @@ import os
 import resource
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
@@ -168,6 +169,30 @@ def count(what: str, full: int, kept: int = 1) -> int:
         return full
     record("cut", what, full=int(full), kept=int(kept))
     return int(kept)
+
+
+@dataclass(frozen=True)
+class BatchCut:
+    """A batch of ``full`` independent copies around one shared state (an ES generation's
+    perturbations, a batch of Flow Lenia episodes) as a dry run on a CPU cuts it: it
+    plays ``kept`` of them, and every loop recorded inside ``counted()`` stands for the
+    ``full / kept`` copies the full run holds side by side (``repeats``)."""
+
+    full: int
+    kept: int
+
+    def counted(self) -> contextlib.AbstractContextManager:
+        return repeats(self.full / self.kept, side_by_side=True, shared_state=True)
+
+
+def cut_batch(what: str, full: int, kept: int) -> BatchCut:
+    """The ``BatchCut`` of a batch of ``full`` copies: ``kept`` of them (at least one per
+    device) in a dry run on a CPU, the cut recorded as ``what`` (``count``); the whole
+    batch elsewhere (a GPU runs it all: its rate on a cut batch would not tell) and
+    outside a dry run."""
+    if jax.default_backend() != "cpu":
+        return BatchCut(full, full)
+    return BatchCut(full, count(what, full, max(kept, jax.local_device_count())))
 
 
 def _memory(compiled: Any) -> dict[str, int]:

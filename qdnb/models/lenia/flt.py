@@ -391,12 +391,10 @@ def frame_errors(pred: jax.Array, truth: jax.Array) -> dict[str, jax.Array]:
 DRY_RUN_EPISODES = 8
 
 
-def dry_run_batch(what: str, full: int) -> int:
-    """``full``; in a dry run on a CPU, ``DRY_RUN_EPISODES`` (at least one episode per
-    device), the cut recorded as ``what`` (``qdnb.core.dryrun.count``)."""
-    if jax.default_backend() != "cpu":
-        return full
-    return dryrun.count(what, full, max(DRY_RUN_EPISODES, jax.local_device_count()))
+def dry_run_batch(what: str, full: int) -> dryrun.BatchCut:
+    """A batch of ``full`` episodes as a dry run on a CPU cuts it: ``DRY_RUN_EPISODES``
+    (``qdnb.core.dryrun.cut_batch``, the cut recorded as ``what``)."""
+    return dryrun.cut_batch(what, full, DRY_RUN_EPISODES)
 
 
 @dataclass(frozen=True)
@@ -444,7 +442,8 @@ def train(
     optimizer = make_optimizer(cfg.learning_rate)
     opt_state = optimizer.init(params)
     step = make_train_step(model, optimizer, cfg.per_modality, cfg.noise, cfg.pushforward)
-    batch = dry_run_batch(f"{desc}'s episodes per batch (side by side)", cfg.batch_size)
+    cut = dry_run_batch(f"{desc}'s episodes per batch (side by side)", cfg.batch_size)
+    batch = cut.kept  # the whole batch but in a dry run on a CPU
     keyed = cfg.dropout > 0 or cfg.noise > 0  # a key for the step's randomness
 
     @jax.jit
@@ -489,8 +488,7 @@ def train(
         total=cfg.train_steps,
     )
     steps = dryrun.steps(desc, bar, full=cfg.train_steps)  # a dry run: the first steps
-    # a dry run on a CPU steps a cut batch: each step stands for the whole batch's
-    with dryrun.repeats(cfg.batch_size / batch, side_by_side=True, shared_state=True):
+    with cut.counted():  # a dry run on a CPU steps a cut batch: each step counts as a whole one
         for i in steps:
             began_step = time.perf_counter()
             params, opt_state, frame_sum, loss, drift = one(
