@@ -13,6 +13,7 @@ from qdnb.qd.low_spread import (
     insert_low_spread,
     low_spread_scores,
     mode_cell,
+    nearest_cells,
     spread,
 )
 from qdnb.qd.repertoire import init_repertoire
@@ -234,3 +235,11 @@ def test_accuracy_plays_the_nearest_stored_policy():
         rtol=1e-6,
     )
     np.testing.assert_allclose(acc.spread, [2.0, 2.0, 2.0])
+
+
+def test_nearest_cells_picks_the_nearest_allowed_cell():
+    """The nearest cell of [1, 1] is forbidden, so its goal goes to [0, 0]; ties none."""
+    descriptors = jnp.array([[0.0, 0.0], [1.0, 1.0], [5.0, 5.0]])
+    allowed = jnp.array([True, False, True])
+    goals = jnp.array([[0.9, 0.9], [4.0, 4.0], [1.0, 1.0]])
+    assert nearest_cells(descriptors, goals, allowed).tolist() == [0, 2, 0]

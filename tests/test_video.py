@@ -230,3 +230,25 @@ def test_a_mark_keeps_its_size_on_screen_as_the_camera_backs_away():
     assert blue.any() and abs(rows.mean() - 40) < 6 and abs(cols.mean() - 40) < 6  # under the torso
     with pytest.raises(ValueError, match="mark_radius"):
         render(env, q0[None], 8, 8, Camera(), marks=((0.0, 0.0),), mark_radius=0.0)
+
+
+def test_flat_clips_names_the_clips_that_play_in_one_colour():
+    """As drawn on [0, top]: a constant clip and one beyond the scale (all its top colour)
+    are flat; a clip spanning the scale is not; the shared first frame counts on request."""
+    first = np.zeros((1, 4, 4))
+    moving = np.concatenate([first, np.linspace(0, 1, 32).reshape(2, 4, 4)])
+    still = np.concatenate([first, np.full((2, 4, 4), 0.5)])
+    beyond = np.concatenate([first, np.full((2, 4, 4), 3.0)])
+    assert v.flat_clips({"a": moving, "b": still, "c": beyond}, top=1.0) == ["b", "c"]
+    assert v.flat_clips({"b": still}, top=1.0, first_shared=False) == []
+
+
+def test_locomotion_camera_keeps_every_point_in_view_of_ant_omni():
+    from qdnb.envs.render import locomotion_camera
+
+    far = locomotion_camera("ant_omni", [[3.0, -4.0], [1.0, 0.5]])
+    assert far.distance == pytest.approx(2.4 * 5.0) and far.lookat == (0.0, 0.0, 0.0)
+    assert locomotion_camera("ant_omni").distance == pytest.approx(2.4 * 2.0)  # 2 m at least
+    assert locomotion_camera("halfcheetah_uni").lookat is None  # follows the torso
+    with pytest.raises(ValueError, match="ant_omni, halfcheetah_uni"):
+        locomotion_camera("pointmaze")

@@ -128,6 +128,19 @@ class Camera:
     lookat: tuple[float, float, float] | None = None
 
 
+def locomotion_camera(env_name: str, points: Any = ()) -> Camera:
+    """Chapter 4's view of a robot: Ant-Omni from 55 degrees above the origin, backed away
+    until every ``(x, y)`` of ``points`` (goals, stored descriptors) is in view (at least
+    2 m around it); Halfcheetah-Uni from the side, following the torso."""
+    if env_name == "ant_omni":
+        far = np.abs(np.asarray(points, float)).max() if np.size(points) else 0.0
+        reach = max(2.0, float(far) + 1.0)
+        return Camera(distance=2.4 * reach, elevation=-55.0, azimuth=90.0, lookat=(0.0, 0.0, 0.0))
+    if env_name == "halfcheetah_uni":
+        return Camera(distance=3.0, elevation=-15.0, azimuth=90.0)
+    raise ValueError(f"no camera for {env_name!r}; valid: ant_omni, halfcheetah_uni")
+
+
 def render(
     env: Env,
     qs: np.ndarray,
@@ -166,17 +179,19 @@ def render(
             mujoco.mj_forward(model, data)
             view.lookat[:] = camera.lookat if camera.lookat is not None else data.xpos[1]
             renderer.update_scene(data, camera=view)
-            discs = [(x, y, RED) for x, y in marks]
+            # (x, y, height, colour): the robot's disc a millimetre above the goals', so it
+            # stays in sight where it crosses one
+            discs = [(x, y, 0.005, RED) for x, y in marks]
             if torso_mark:
-                discs.append((data.xpos[1][0], data.xpos[1][1], BLUE))
-            for x, y, colour in discs:
+                discs.append((data.xpos[1][0], data.xpos[1][1], 0.006, BLUE))
+            for x, y, z, colour in discs:
                 scene = renderer.scene
                 if scene.ngeom < scene.maxgeom:
                     mujoco.mjv_initGeom(
                         scene.geoms[scene.ngeom],
                         mujoco.mjtGeom.mjGEOM_CYLINDER,
                         np.array([radius, 0.005, 0.0]),
-                        np.array([x, y, 0.006 if colour is BLUE else 0.005]),
+                        np.array([x, y, z]),
                         np.eye(3).ravel(),
                         colour,
                     )

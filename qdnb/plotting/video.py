@@ -63,6 +63,18 @@ def rgb_frames(frames, cmap: str = "magma", vmax: float | None = None) -> np.nda
     return (colormaps[cmap](scaled)[..., :3] * 255).round().astype(np.uint8)
 
 
+def flat_clips(clips: dict[str, np.ndarray], top: float, first_shared: bool = True) -> list[str]:
+    """The names of ``clips`` (one channel's frames ``(T, H, W)`` each) that play in one
+    colour on the scale ``[0, top]`` (``rgb_frames(..., vmax=top)``): clipped to it, as
+    drawn, their values span at most ``FLAT`` of it, the rule ``degeneracies`` applies to
+    an image.  With ``first_shared`` the first frame, which predictions unrolled from the
+    truth's first frame share with it, is left out."""
+    from qdnb.plotting import FLAT
+
+    start = 1 if first_shared else 0
+    return [name for name, c in clips.items() if np.ptp(np.clip(c[start:], 0, top)) <= FLAT * top]
+
+
 def enlarge(frames: np.ndarray, factor: int) -> np.ndarray:
     """Every pixel of ``(T, H, W, C)`` frames as a ``factor`` x ``factor`` block."""
     if factor < 1:

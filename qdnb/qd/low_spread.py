@@ -157,6 +157,14 @@ class Accuracy:
     chosen: jax.Array  # (G,) repertoire cell whose policy was played
 
 
+def nearest_cells(descriptors: jax.Array, goals: jax.Array, allowed: jax.Array) -> jax.Array:
+    """For each goal of ``goals`` ``(G, d)``, the index of the cell, among those
+    ``allowed`` ``(N,)`` marks, whose descriptor (``descriptors`` ``(N, d)``) is nearest
+    to it (Euclidean)."""
+    d2 = jnp.sum((goals[:, None, :] - descriptors[None, :, :]) ** 2, axis=-1)
+    return jnp.argmin(jnp.where(allowed[None, :], d2, jnp.inf), axis=1)
+
+
 def accuracy(
     repertoire: Repertoire,
     goals: jax.Array,
@@ -167,8 +175,7 @@ def accuracy(
     descriptor is nearest to the goal (``evaluate_fn(genotypes, key)`` returns
     ``(G, E)`` fitnesses and ``(G, E, d)`` descriptors) and measure how far its
     episodes end from the goal, and their spread."""
-    d2 = jnp.sum((goals[:, None, :] - repertoire.descriptors[None, :, :]) ** 2, axis=-1)
-    chosen = jnp.argmin(jnp.where(repertoire.filled[None, :], d2, jnp.inf), axis=1)
+    chosen = nearest_cells(repertoire.descriptors, goals, repertoire.filled)
     ev = evaluate_fn(jax.tree.map(lambda x: x[chosen], repertoire.genotypes), key)
     distance = jnp.mean(jnp.linalg.norm(ev.descriptor - goals[:, None, :], axis=-1), axis=1)
     return Accuracy(distance=distance, spread=jax.vmap(spread)(ev.descriptor), chosen=chosen)
