@@ -290,7 +290,7 @@ SCALES = {
         num_perturbations=1000,
         pointmaze_steps=100_000_000,
         ant_perturbations=100,
-        antmaze_steps=1_000_000,
+        antmaze_steps=500_000,  # 10 generations: the page's time (the notebook's scale cell)
         ant_seeds=1,
     ),
     "paper": _scale(
