@@ -252,3 +252,23 @@ def test_locomotion_camera_keeps_every_point_in_view_of_ant_omni():
     assert locomotion_camera("halfcheetah_uni").lookat is None  # follows the torso
     with pytest.raises(ValueError, match="ant_omni, halfcheetah_uni"):
         locomotion_camera("pointmaze")
+
+
+def test_the_drawn_floor_is_wider_with_checkers_as_large():
+    """A Halfcheetah leaves Brax's 80 m floor in a long episode: the model drawn has its
+    floor ten times wider, the texture repeated ten times more, the simulated one intact."""
+    import mujoco
+
+    from qdnb.envs import make_env
+    from qdnb.envs.render import FLOOR_SCALE, _drawn_model
+
+    model = make_env("halfcheetah_uni", episode_length=10).brax_env.sys.mj_model
+    drawn = _drawn_model(model)
+    floor = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE)[0]
+    material = model.geom_matid[floor]
+    np.testing.assert_allclose(drawn.geom_size[floor, :2], FLOOR_SCALE * model.geom_size[floor, :2])
+    np.testing.assert_allclose(
+        drawn.mat_texrepeat[material] / drawn.geom_size[floor, :2],
+        model.mat_texrepeat[material] / model.geom_size[floor, :2],
+    )
+    assert model.geom_size[floor, 0] == 40.0  # the simulated model is left as it was

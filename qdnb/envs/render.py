@@ -18,6 +18,7 @@ saying so.
 
 from __future__ import annotations
 
+import copy
 import functools
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -141,6 +142,26 @@ def locomotion_camera(env_name: str, points: Any = ()) -> Camera:
     raise ValueError(f"no camera for {env_name!r}; valid: ant_omni, halfcheetah_uni")
 
 
+FLOOR_SCALE = 10  # how much wider the drawn floor is than the model's
+
+
+def _drawn_model(model):
+    """A copy of ``model`` for drawing only, its floor planes ``FLOOR_SCALE`` times wider
+    (their checkers as large: the texture repeats as many more times).  Brax's floors
+    are 80 m across, and a Halfcheetah running 1,000 steps leaves them: past the edge
+    it ran in a grey void under a black band, the floor's end in shadow."""
+    import mujoco
+
+    drawn = copy.deepcopy(model)
+    for g in np.flatnonzero(drawn.geom_type == mujoco.mjtGeom.mjGEOM_PLANE):
+        drawn.geom_size[g, :2] *= FLOOR_SCALE
+        material = drawn.geom_matid[g]
+        alone = np.sum(drawn.geom_matid == material) == 1  # no wall shares its texture
+        if material >= 0 and alone and not drawn.mat_texuniform[material]:
+            drawn.mat_texrepeat[material] *= FLOOR_SCALE
+    return drawn
+
+
 def render(
     env: Env,
     qs: np.ndarray,
@@ -164,7 +185,7 @@ def render(
     why = renderer_missing()
     if why is not None:
         raise RuntimeError(why)
-    model = env.brax_env.sys.mj_model
+    model = _drawn_model(env.brax_env.sys.mj_model)
     data = mujoco.MjData(model)
     view = mujoco.MjvCamera()
     view.type = mujoco.mjtCamera.mjCAMERA_FREE
