@@ -41,6 +41,7 @@ from qdnb.models.lenia.flt import (
     unroll,
 )
 from qdnb.nets.transformer import make_optimizer
+from qdnb.qd.repertoire import Repertoire
 
 WORLD = fl.FlowLeniaConfig(
     height=16, width=16, kernels=2, patch_size=5, steps=6, radius_scale=16 / 128
@@ -282,7 +283,7 @@ def test_held_out_derived_values_on_hand_made_errors():
 
 def test_search_result_extremes_and_correlations_on_a_hand_made_repertoire():
     fitnesses = jnp.array([0.5, -jnp.inf, 0.9, 0.1, 0.7])
-    repertoire = chapter.rep_lib.Repertoire(
+    repertoire = Repertoire(
         {"a": jnp.zeros((5, 1))}, fitnesses, jnp.zeros((5, 2)), jnp.zeros((5, 2))
     )
     history = {
