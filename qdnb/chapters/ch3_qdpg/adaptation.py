@@ -1,4 +1,4 @@
-"""Chapter 3's fast adaptation (Section 3.5.3): new Ant-Maze goals reached by searching the
+"""Chapter 3's fast adaptation (Section 3.7): new Ant-Maze goals reached by searching the
 final grid, and the hand-made Point-Maze path.
 """
 

@@ -1,5 +1,5 @@
-"""Chapter 3's claims (Section 3.6): QD-PG against TD3 and its ablations, per seed, and the
-page's summary.
+"""Chapter 3's claims (Section 3.6), on Point-Maze: QD-PG against TD3 and its ablations, per
+seed, and the page's summary.
 """
 
 from __future__ import annotations

@@ -4,7 +4,6 @@ once, its results, and the QD-PG runs other pages reuse.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -95,18 +94,6 @@ def final_grid(state: Any) -> dict[str, np.ndarray] | None:
             "centroids": rep.centroids,
         }
     )
-
-
-# bench/qdpg_ab.py's rule: a reading of QD-PG exits Point-Maze's trap when at least three
-# quarters of its seeds (3 of 4; 5 of 6 once a reading one seed from that gets two more) reach
-# the exit zone within 10^6 steps (a diverged seed does not); fewer than 4 seeds call nothing
-READING_EXITS_SHARE = 0.75
-READING_MIN_SEEDS = 4
-
-
-def exits_needed(num_seeds: int) -> int:
-    """Seeds of ``num_seeds`` that must reach the exit zone for a reading to exit."""
-    return math.ceil(READING_EXITS_SHARE * num_seeds)
 
 
 @dataclass(frozen=True)

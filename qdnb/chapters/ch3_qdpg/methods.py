@@ -132,4 +132,4 @@ METHODS: dict[str, Callable[[QDPGConfig, QDPGTask, dict], Algorithm]] = {
     "NSR-ES": _evolution_strategy(NSRES),
     "NSRA-ES": _evolution_strategy(NSRAES),
 }
-QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")  # this page's methods
+QDPG_METHODS = ("QD-PG", "QD-PG Sum", "D-PG", "Q-PG", "TD3", "PGA-ME")  # the QD-PG page's methods

@@ -9,8 +9,8 @@ Figure 4.14); and a QDT trained on each pruned ME-LS dataset (Figures 4.10 and
 the accuracy claim compares).  Everything comes back as frozen results with the
 seeds on axis 0 (``EnvironmentResult``: ``Scores`` and ``QDTRun`` per method); the
 derived values (``selection_summary``, ``data_floor``, ``nearest_half``), the
-claim (``claim_checks``) and ``summary_results`` are here; the notebook draws and
-tabulates.
+claim (``claim_checks``) and ``summary_results`` are in ``claims``; the notebook
+draws and tabulates.
 
 The page's files: ``settings`` (Table 4.3's config and the scales), ``repertoires``
 (Chapter 4's repertoires, the data), ``results`` (what a run keeps), ``experiment``

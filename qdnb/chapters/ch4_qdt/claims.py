@@ -1,5 +1,6 @@
-"""The QDT page's claim (Table 4.4) and summary: QDT(ME-LS) against the ME repertoire and
-QDT(ME).
+"""The QDT page's claim (Table 4.4), QDT(ME-LS) against the ME repertoire and QDT(ME), its
+summary, and the values the page derives from a run (``selection_summary``,
+``data_floor``, ``nearest_half``).
 """
 
 from __future__ import annotations

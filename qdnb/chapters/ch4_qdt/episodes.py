@@ -1,5 +1,5 @@
-"""Episodes to watch: the QDT and the demonstrator it learnt from, on the nearest, median
-and farthest of its goals.
+"""Episodes to watch: the QDT and the demonstrator it learnt from, on goals the page picks
+(it shows the nearest, the median and the farthest).
 """
 
 from __future__ import annotations
@@ -12,16 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.chapters.ch4_qdt.experiment import qdt_model
-from qdnb.chapters.ch4_reproducibility import (
-    ReproducibilityConfig,
-)
+from qdnb.chapters.ch4_reproducibility import ReproducibilityConfig
 from qdnb.envs.rollout import evaluate_policies
-from qdnb.models.qdt.data import (
-    seed_repertoire,
-)
-from qdnb.models.qdt.evaluate import (
-    play,
-)
+from qdnb.models.qdt.data import seed_repertoire
+from qdnb.models.qdt.evaluate import play
 from qdnb.nets.mlp import MLP
 from qdnb.qd.low_spread import nearest_cells
 

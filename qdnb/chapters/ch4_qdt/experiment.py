@@ -1,6 +1,8 @@
-"""The QDT experiment (Section 4.6): datasets from the repertoires' episodes, each QDT
-trained on a budget of gradient steps, then conditioned on goals and evaluated in closed
-loop.
+"""The QDT experiment on one environment (Sections 4.4.4 and 4.5.1-4.5.5): the accuracy
+experiment of the repertoires and of the policies the zone selection keeps, the datasets
+from their episodes, each QDT (and each pruned dataset's, for the generalisation
+experiment) trained on a budget of gradient steps, then conditioned on goals and
+evaluated in closed loop.
 """
 
 from __future__ import annotations
@@ -16,9 +18,7 @@ import numpy as np
 
 from qdnb.chapters.ch4_qdt.results import EnvironmentResult
 from qdnb.chapters.ch4_qdt.settings import CLAIM_SOURCES
-from qdnb.chapters.ch4_reproducibility import (
-    ReproducibilityConfig,
-)
+from qdnb.chapters.ch4_reproducibility import ReproducibilityConfig
 from qdnb.core import dryrun
 from qdnb.core.loops import map_concurrently
 from qdnb.core.sharding import device_memory_bytes

@@ -17,9 +17,7 @@ from qdnb.chapters.ch4_reproducibility import run_environment as run_chapter4
 from qdnb.core import paths
 from qdnb.core.config import config_hash
 from qdnb.core.io import load_summary
-from qdnb.models.qdt.data import (
-    SOURCES,
-)
+from qdnb.models.qdt.data import SOURCES
 
 
 def repertoire_path(scale: str, env_name: str, method: str):
@@ -56,7 +54,8 @@ def load_or_recompute_repertoires(
                     if not path.exists()
                     else "recomputed: computed under another config"
                 )
-        if missing:  # the same key as run_environments(cfg, PRNGKey(seed)) gives this environment
+        if missing:
+            # the key ch4_reproducibility.run_environments(repro_cfg, PRNGKey(seed)) gives it
             key = jax.random.fold_in(jax.random.PRNGKey(seed), i)
             out = run_chapter4(repro_cfg, env_name, key, progress, methods=tuple(missing))
             for method in missing:

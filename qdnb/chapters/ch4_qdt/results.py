@@ -10,9 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from qdnb.models.qdt.data import (
-    Selection,
-)
+from qdnb.models.qdt.data import Selection
 
 
 @dataclass(frozen=True)
@@ -110,7 +108,8 @@ class EnvironmentResult:
     generalization: dict[str, QDTRun]
     naive_episodes_per_policy: tuple[int, ...]
     full_seeds: int
-    watched: Any = None  # seed 0's QDT(ME-LS) parameters (its best evaluation's): goal_episodes
+    # seed 0's QDT(ME-LS) parameters (its best evaluation's), for episodes.goal_episodes
+    watched: Any = None
     seconds: float = float("nan")
 
     @classmethod

@@ -35,7 +35,6 @@ from qdnb.chapters.ch5_flow_lenia.evaluation import (
     best_model,
     diagnose,
     evaluate,
-    spearman,
 )
 from qdnb.chapters.ch5_flow_lenia.experiment import Result, run, surprise_search, train_variant
 from qdnb.chapters.ch5_flow_lenia.search import (
@@ -45,6 +44,7 @@ from qdnb.chapters.ch5_flow_lenia.search import (
     offsets,
     pattern_descriptors,
     signed,
+    spearman,
 )
 from qdnb.chapters.ch5_flow_lenia.settings import (
     PAPER_FLT,

@@ -9,9 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from qdnb.core import claims
-from qdnb.models.lenia.flt import (
-    TrainResult,
-)
+from qdnb.models.lenia.flt import TrainResult
 
 if TYPE_CHECKING:
     from qdnb.chapters.ch5_flow_lenia.evaluation import HeldOut

@@ -1,6 +1,7 @@
 """Chapter 5's evaluation: held-out episodes from fresh initial states, the FLT unrolled
 from the first frame against the persistence and mean-frame predictors, and the
-diagnosis of its errors.
+diagnosis of its errors; which model (the thesis's FLT or our variant) predicts better
+(``best_model``), the one the surprise search scores with.
 """
 
 from __future__ import annotations
@@ -232,12 +233,6 @@ def diagnose(
         "mean frame": float(np.mean((mean_frames[None, 1:, ..., 1:] - p_true) ** 2)),
     }
     return Diagnosis(replay, within_h, copy_A, p_errors)
-
-
-def spearman(x: np.ndarray, y: np.ndarray) -> float:
-    """Spearman's rank correlation (no ties expected: continuous values)."""
-    rank = lambda v: np.argsort(np.argsort(v))
-    return float(np.corrcoef(rank(x), rank(y))[0, 1])
 
 
 THESIS_FLT, OUR_FLT = "the thesis's FLT", "our FLT variant"

@@ -13,7 +13,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from qdnb.chapters.ch5_flow_lenia.evaluation import spearman
 from qdnb.core.evaluation import Evaluation
 from qdnb.core.loops import scan_in_chunks
 from qdnb.models.lenia import flow_lenia as fl
@@ -26,6 +25,12 @@ from qdnb.qd import repertoire as rep_lib
 from qdnb.qd.cvt import grid_centroids
 from qdnb.qd.map_elites import MapElites
 from qdnb.qd.variation import gaussian_mutation
+
+
+def spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman's rank correlation (no ties expected: continuous values)."""
+    rank = lambda v: np.argsort(np.argsort(v))
+    return float(np.corrcoef(rank(x), rank(y))[0, 1])
 
 
 def centre_of_mass(A: jax.Array, torus: bool = False) -> jax.Array:

@@ -8,9 +8,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from qdnb.models.lenia.flow_lenia import FlowLeniaConfig
-from qdnb.models.lenia.flt import (
-    FLTConfig,
-)
+from qdnb.models.lenia.flt import FLTConfig
 
 
 @dataclass(frozen=True)
@@ -87,7 +85,7 @@ def lenia_world(size: int, kernels: int = 10) -> FlowLeniaConfig:
 Config = FlowLeniaChapterConfig
 
 
-# The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
+# The FLTs of each scale: the thesis's (Table 5.2's, shrunk) and our variant's.
 TINY_FLT = FLTConfig(
     embed_dim=16, num_layers=1, num_heads=2, features=(4, 8), batch_size=4, train_steps=20
 )
@@ -121,6 +119,7 @@ VARIANT_SHARE = 0.32  # of the thesis FLT's training steps
 SMALL_VARIANT = dataclasses.replace(
     SMALL_FLT, **VARIANT_PICK, train_steps=round(VARIANT_SHARE * SMALL_FLT.train_steps)
 )
+# The chapter's configs, one per scale (the rule of each is in the notebook's scale cell).
 SCALES = {
     "tiny": FlowLeniaChapterConfig(
         num_seeds=1,
