@@ -730,7 +730,9 @@ def test_repertoires_are_reused_only_under_the_same_config_and_seed(tmp_path, mo
         )
         return SimpleNamespace(methods={m: one for m in methods})
 
-    monkeypatch.setattr(qdt_data, "run_chapter4", fake_run_environment)
+    from qdnb.chapters.ch4_qdt import repertoires
+
+    monkeypatch.setattr(repertoires, "run_chapter4", fake_run_environment)  # where it is read
     good = qdt_data.repertoire_path("tiny", "ant_omni", "ME")
     save_repertoires(good, config_hash(repro), stub, np.zeros((1, 3)), np.zeros((1, 3)))
     save_repertoires(
