@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Iterator
 
-from qdnb.book import appendix, pagecheck, publish, registry, scorecard
+from qdnb.book import appendix, code_pages, pagecheck, publish, registry, scorecard
 from qdnb.book.provenance import CHECKPOINT_MODES, DETERMINISTIC_FLAG
 from qdnb.core import paths, sharding
 from qdnb.core.config import SCALES, check_scale
@@ -508,7 +508,8 @@ def copy_page(name: str, scale: str, dest: Path) -> list:
     box (``scorecard.chapter_box``: its claims at this scale, the scale's meaning, the
     run's seed, devices and time) and, for an imported run, ``publish.banner``; its
     cells tagged for the appendix are taken out (and returned, for ``appendix.page``),
-    a link to the appendix in their place after the introduction."""
+    a link to the appendix in their place after the introduction; at its end, the files
+    and ``bench/`` records behind it (``code_pages.section``)."""
     import nbformat
 
     source = executed_path(name, scale)
@@ -527,6 +528,7 @@ def copy_page(name: str, scale: str, dest: Path) -> list:
     if moved:
         opening.append(nbformat.v4.new_markdown_cell(appendix.link(registry.chapter(name))))
     nb.cells[1:1] = opening
+    nb.cells.append(nbformat.v4.new_markdown_cell(code_pages.section(name)))
     book_figures(nb)
     atomic_write_bytes(dest, nbformat.writes(nb).encode())
     return moved
@@ -583,6 +585,7 @@ def build_book(
     (paths.BOOK / "_paper_scale.md").write_text(paper_scale_page())
     (paths.BOOK / "_toc.yml").write_text(registry.toc())
     copy_mathjax(paths.BOOK / "_extra")
+    code_pages.write_copies(names, paths.BOOK / "_extra")
     exe = Path(sys.executable).parent / "jupyter-book"
     cmd = [
         str(exe) if exe.exists() else "jupyter-book",
