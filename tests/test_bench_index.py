@@ -5,6 +5,7 @@ with the book."""
 import re
 
 from qdnb.book import code_pages
+from qdnb.book.pagecheck import E_NOTATION, reader_text
 from qdnb.book.registry import CHAPTERS
 from qdnb.core import paths
 
@@ -42,6 +43,11 @@ def test_each_page_lists_its_chapter_code_and_the_records_naming_it():
     assert "No `bench/` record" in code_pages.section("ch2_primer")
     # the presentation layer computes nothing: it is not listed as behind a result
     assert "qdnb/book/" not in qdpg and "plotting/" not in qdpg
+    # the README's plain numbers read as the book writes them (its page check refuses 1e-5)
+    flt = code_pages.section("ch5_flow_lenia")
+    assert "(10⁻⁵)" in flt and not E_NOTATION.search(
+        reader_text(f'<article class="bd-article">{flt}')
+    )
 
 
 def test_every_link_of_every_page_opens_a_shipped_copy(tmp_path):

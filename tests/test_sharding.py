@@ -1,7 +1,8 @@
 """Every local device: a loop of each kind (``bench/probes/devices_probe.py``: the GA, Novelty
 Search, MAP-Elites and PGA-ME on Point-Maze, a Brax MAP-Elites loop, QD-PG, ME-ES, the FLT's
 and the QDT's training steps) on 1 device and, twice, on 2 (CPU devices forced by
-``XLA_FLAGS``, each run in its own process).
+``XLA_FLAGS``, each run in its own process; the second 2-device run loads the programs the
+first compiled, from a compilation cache of the test's own).
 
 - Same seed, same numbers at a device count: the two 2-device runs agree bit for bit.
 - Across counts, bit for bit where each device computes its share as one device computes
@@ -31,14 +32,17 @@ from qdnb.core.paths import ROOT
 LEARNING_RATE = 1e-3  # the probe's QDT step
 
 
-def probe(tmp_path, counts=(1, 2, 2)):
-    """Run ``bench/probes/devices_probe.py`` at each device count of ``counts``, side by side."""
+def probe(tmp_path, runs: dict[str, int], cache) -> list[dict]:
+    """Run ``bench/probes/devices_probe.py`` once per entry of ``runs`` (its name: its
+    device count), side by side, their compiled programs kept in (and read from) the
+    folder ``cache``; the results in ``runs``' order."""
     procs = []
-    for i, n in enumerate(counts):
-        env = dict(os.environ, JAX_PLATFORMS="cpu")
+    for name, n in runs.items():
+        env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache))
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
         env["XLA_FLAGS"] = sharding.with_device_count(env.get("XLA_FLAGS", ""), n)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        out = tmp_path / f"{i}-{n}.npz"
+        out = tmp_path / f"{name}.npz"
         cmd = [sys.executable, str(ROOT / "bench" / "probes" / "devices_probe.py"), str(out)]
         procs.append((subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True), out))
     results = []
@@ -50,7 +54,12 @@ def probe(tmp_path, counts=(1, 2, 2)):
 
 
 def test_same_numbers_at_a_device_count_and_across_counts(tmp_path):
-    one, two, again = probe(tmp_path)
+    # one device and two side by side; then two again, from the programs the first two-device
+    # run compiled (its own process: the same executables run again, not recompiled, which
+    # took a third of this test's time)
+    cache = tmp_path / "xla"
+    one, two = probe(tmp_path, {"one": 1, "two": 2}, cache)
+    (again,) = probe(tmp_path, {"again": 2}, cache)
     assert [int(r.pop("devices")) for r in (one, two, again)] == [1, 2, 2]
     assert one.keys() == two.keys() == again.keys()
     for key in two:  # the same seed on the same machine: the same numbers

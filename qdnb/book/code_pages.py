@@ -19,6 +19,7 @@ from pathlib import Path
 
 from qdnb.book import verdicts
 from qdnb.core import paths
+from qdnb.core.names import number_text
 
 # where the copies go inside the built site (``book/_extra`` is copied to its root)
 FOLDER = "code"
@@ -84,6 +85,17 @@ def summary_line(path: Path) -> str:
     return re.split(r"\.\s+(?=[A-Z])", first)[0].rstrip(".")
 
 
+_E_NUMBER = re.compile(r"(?<![\w.`])\d+(?:\.\d+)?[eE][+-]?\d+(?![\w.`])")
+_POWER = re.compile(r"(?<![\w`])10\^(\d+)")
+
+
+def _prose(text: str) -> str:
+    """The README's plain-text numbers as the book writes them: 1e-5 as 10⁻⁵, 10^6 as
+    10⁶."""
+    text = _E_NUMBER.sub(lambda m: number_text(float(m.group(0))), text)
+    return _POWER.sub(lambda m: number_text(10 ** int(m.group(1))), text)
+
+
 def _href(relative: str) -> str:
     """The link, from a chapter page, to the shipped copy of a repository file."""
     target = relative if relative.endswith(".json") else f"{relative}.html"
@@ -121,7 +133,8 @@ def section(name: str) -> str:
         for r in records:
             results = ", ".join(_link(f"bench/results/{f}", f) for f in r.results) or "no file"
             lines.append(
-                f"- {_link('bench/' + r.script, r.script)} ({r.kind}) → {results}: {r.question}"
+                f"- {_link('bench/' + r.script, r.script)} ({r.kind}) → {results}: "
+                f"{_prose(r.question)}"
             )
     else:
         lines += ["", "*No `bench/` record: this page's settings cite none.*"]
