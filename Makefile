@@ -6,13 +6,10 @@ SCALE  ?= small
 SEED   ?= 0
 # XLA's compiled programs are kept on disk and reused when the same program is compiled
 # again (the notebooks' loops in the tests, a re-run notebook): the same executable, the
-# same numbers, less waiting.  Every program, not only those over JAX's default second:
-# each process (a notebook's kernel, a test worker) otherwise recompiles hundreds of
-# small ones others already compiled (loading a Brax robot alone is about 300); the
-# primer's second run at tiny took 21 s with them cached against 28 s without (and its
-# first run no longer), on the AMD EPYC of 2026-12-07.
+# same numbers, less waiting.  (JAX keeps programs that took over a second to compile;
+# keeping every one made no difference to the tests: the primer's two runs, Flow Lenia's and
+# the locomotion tests took 260.7 s either way from an empty cache, AMD EPYC, 2026-12-08.)
 export JAX_COMPILATION_CACHE_DIR ?= $(CURDIR)/.jax_cache
-export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS ?= 0
 
 .PHONY: book test lab lint venv bench lock clean
 

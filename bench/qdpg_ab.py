@@ -33,6 +33,13 @@ THE RULE (written before any run; the results file carries it):
   (``thesis-sgd`` always runs: it is the thesis's own reading and its divergence is
   diagnosed from it).  The thesis's reading stays QD-PG in the chapter whatever
   exits; a variant that exits is shown beside it, labelled.
+- Added on 2026-12-08, after the A/B above ended (``qdax-novelty`` exits, 3 of 4 seeds,
+  so ``qdax-greedy`` and ``exploration-noise`` are not run) and before any of these seeds
+  ran: diagnostics, outside the early stop, run only when named (``--variants``), each
+  read by the same rule (3 of 4 seeds; 2 of 4 gets seeds 4-5), to say which of an exiting
+  reading's differences made it exit.  ``squared-k10`` is ``qdax-novelty`` with the
+  thesis's K = 10: if it exits, QDax's squared distance is enough; if it does not, K = 5
+  is needed, alone or with the squared distance.
 
 Resumable: each pair of seeds is one loop with checkpoints (every 5 minutes, under
 ``data/runs/bench/qdpg_ab/``), and its rows are written to
@@ -41,6 +48,7 @@ is skipped.  Commit the file as rows arrive: the whole A/B takes about an hour a
 variant on 2 cores.
 
     python bench/qdpg_ab.py [--variants thesis-adam sum] [--steps 1000000] [--seeds 4]
+    python bench/qdpg_ab.py --variants squared-k10    # a diagnostic: only when named
 """
 
 from __future__ import annotations
@@ -113,6 +121,15 @@ VARIANTS: dict[str, tuple[str, Callable[[QDPGConfig], QDPGConfig], dict[str, Any
         {"exploration_noise": 0.1},
     ),
 }
+# diagnostics of an exiting reading: outside the early stop, run only when named
+DIAGNOSTICS: dict[str, tuple[str, Callable[[QDPGConfig], QDPGConfig], dict[str, Any]]] = {
+    "squared-k10": (
+        "QDax's squared distance at the thesis's K = 10 (which of qdax-novelty's two "
+        "differences makes it exit)",
+        adam,
+        {"novelty_reduction": "mean_squared"},
+    ),
+}
 
 
 def load(path: Path) -> dict[str, Any]:
@@ -166,7 +183,9 @@ def seed_rows(variant: str, seeds: list[int], result, parts: tuple[str, ...], wa
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument(
+        "--variants", nargs="+", default=list(VARIANTS), choices=[*VARIANTS, *DIAGNOSTICS]
+    )
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--out", type=Path, default=RESULTS, help="(a trial run's results)")
@@ -177,11 +196,11 @@ def main() -> None:
     base = table_3_2(args.steps)
     env = make_task_env(base, "pointmaze")
     for variant in args.variants:
-        earlier = list(VARIANTS)[: list(VARIANTS).index(variant)]
+        earlier = list(VARIANTS)[: list(VARIANTS).index(variant)] if variant in VARIANTS else []
         if variant not in ALWAYS and any(reading_exits(out, v) for v in earlier):
             print(f"{variant}: skipped, an earlier reading exits (the rule's early stop)")
             continue
-        what, make_cfg, fields = VARIANTS[variant]
+        what, make_cfg, fields = {**VARIANTS, **DIAGNOSTICS}[variant]
         cfg = make_cfg(base)
         algo = dataclasses.replace(build_algorithms(cfg, "pointmaze", env)["QD-PG"], **fields)
         first = 0

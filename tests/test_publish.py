@@ -132,7 +132,9 @@ def test_an_imported_page_opens_with_its_banner_and_the_status_says_imported(run
     (runs / "tiny" / "ch2_primer" / publish.IMPORTED).unlink()
     runner.copy_page("ch2_primer", "tiny", page)
     cells = nbformat.read(page, as_version=4).cells
-    assert len(cells) == 4 and "computed by this build" in cells[1].source
+    assert len(cells) == 5 and "computed by this build" in cells[1].source
+    # its last cell: the code behind it (qdnb.book.code_pages)
+    assert cells[-1].source.startswith("## Code behind this page")
 
 
 def test_the_cli_refuses_a_bad_archive_with_a_clear_error(tmp_path):
