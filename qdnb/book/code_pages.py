@@ -96,10 +96,15 @@ def _prose(text: str) -> str:
     return _POWER.sub(lambda m: number_text(10 ** int(m.group(1))), text)
 
 
+def _copy_name(relative: str) -> str:
+    """Where a repository file's copy lies under ``FOLDER``: JSON results as they are,
+    source files as highlighted HTML pages."""
+    return relative if relative.endswith(".json") else f"{relative}.html"
+
+
 def _href(relative: str) -> str:
     """The link, from a chapter page, to the shipped copy of a repository file."""
-    target = relative if relative.endswith(".json") else f"{relative}.html"
-    return f"../{FOLDER}/{target}"
+    return f"../{FOLDER}/{_copy_name(relative)}"
 
 
 def _link(relative: str, label: str | None = None) -> str:
@@ -180,9 +185,9 @@ def write_copies(names: list[str], extra: Path) -> list[str]:
     shutil.rmtree(out, ignore_errors=True)
     files = shipped_files(names)
     for relative in files:
-        dest = out / (relative if relative.endswith(".json") else f"{relative}.html")
+        dest = out / _copy_name(relative)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        if relative.endswith(".json"):
+        if dest.name == Path(relative).name:  # a result, as it is
             shutil.copyfile(paths.ROOT / relative, dest)
         else:
             dest.write_text(_highlighted(relative))
