@@ -23,6 +23,35 @@ def records(tmp_path, monkeypatch):
     return read
 
 
+def test_loops_meet_the_dry_run_at_one_seam(tmp_path, monkeypatch):
+    """``driver()``: outside a dry run the loop, the one-shot calls and the seeds run as
+    given; inside, a loop runs its first steps at full-length shapes, and seeds side by
+    side run as one (spread to all) unless all of them would be quick."""
+    monkeypatch.delenv(dryrun.ENV, raising=False)
+    full = dryrun.driver()
+    assert full is dryrun.FULL_RUN and full.concurrent
+    assert full.loop("loop", None, None, 5, lambda: "the loop as written") == "the loop as written"
+    assert full.call("start", lambda a: a + 1, 1) == 2
+    assert full.seeds("seeds", jnp.arange(3), lambda k: 2 * k, spread=None).tolist() == [0, 2, 4]
+
+    monkeypatch.setenv(dryrun.ENV, str(tmp_path / "loops.jsonl"))
+    dry = dryrun.driver()
+    assert isinstance(dry, dryrun.DryRun) and not dry.concurrent
+    never = lambda: pytest.fail("the full loop ran in a dry run")  # noqa: E731
+    carry, out = dry.loop("count", lambda c: (c + 1, c), jnp.int32(0), 5, never)
+    assert int(carry) == dryrun.KEEP_STEPS and out.shape == (5,)
+
+    def run(keys):  # one loop per seed, side by side
+        c, _ = dryrun.driver().loop("seeds", lambda c: (c + 1, c), jnp.zeros(len(keys)), 4, never)
+        return c
+
+    spread = lambda out, n: ("spread", out.shape, n)  # noqa: E731
+    monkeypatch.setattr(dryrun, "ALL_SEEDS_S", 0.0)  # every step too slow for all the seeds
+    assert dry.seeds("seeds", jnp.arange(3), run, spread) == ("spread", (1,), 3)
+    monkeypatch.setattr(dryrun, "ALL_SEEDS_S", 1e9)  # quick: all of them, as the full run
+    assert dry.seeds("seeds", jnp.arange(3), run, spread).shape == (3,)
+
+
 def test_outside_a_dry_run_nothing_is_cut_or_recorded(tmp_path, monkeypatch):
     monkeypatch.delenv(dryrun.ENV, raising=False)
     assert dryrun.active() is None

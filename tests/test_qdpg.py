@@ -822,6 +822,21 @@ def test_the_population_plays_with_exploration_noise_only_when_asked(maze):
     assert not np.allclose(noisy.descriptor, plain.descriptor)
 
 
+def test_every_reading_the_ab_can_run_has_its_name_on_the_page(monkeypatch):
+    """bench/qdpg_ab.py's variants and diagnostics, in its order, are the page's READINGS:
+    a row of a reading the page cannot name would be left out of its table."""
+    import importlib.util
+
+    from qdnb.chapters import ch3_qdpg as chapter
+
+    bench = Path(__file__).parents[1] / "bench"
+    monkeypatch.syspath_prepend(str(bench))
+    spec = importlib.util.spec_from_file_location("qdpg_ab", bench / "qdpg_ab.py")
+    ab = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ab)
+    assert list(chapter.READINGS) == [*ab.VARIANTS, *ab.DIAGNOSTICS]
+
+
 def test_the_readings_table_follows_the_rule_and_leaves_diverged_seeds_out():
     from qdnb.chapters import ch3_qdpg as chapter
 

@@ -201,6 +201,21 @@ def test_recorded_actions_replay_step_by_step_and_are_held_once_the_episode_ends
     assert np.allclose(qs[1, :, 0], [0, 0.1, 0.3, 0.6, 1.0, 1.5]) and alive[1].all()
 
 
+def test_a_watched_episode_is_the_evaluated_one_with_its_states_and_its_descriptor():
+    from qdnb.envs.render import episode_states, watched_episodes
+    from qdnb.envs.rollout import evaluate_policies
+
+    speeds, key = jnp.array([[1.0], [0.5], [-0.75]]), jax.random.PRNGKey(3)
+    apply = lambda p, obs: p  # noqa: E731
+    qs, reached = watched_episodes(Slider(5), apply, speeds, jax.random.split(key, 3))
+    alone, _ = episode_states(Slider(5), apply, speeds, jax.random.split(key, 3))
+    evaluated = evaluate_policies(Slider(5), apply, speeds, key)  # starts: split(key, 3)
+    assert np.array_equal(qs, alone)
+    # the first ends past 2.5 at its third step, the others play all five
+    assert reached[:, 0].tolist() == [3.0, 2.5, -3.75]
+    assert np.array_equal(reached, np.asarray(evaluated.descriptor))
+
+
 def test_a_mark_keeps_its_size_on_screen_as_the_camera_backs_away():
     from qdnb.envs.render import renderer_missing
 

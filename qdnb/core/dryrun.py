@@ -2,7 +2,9 @@
 shapes, its cost is measured, and the rest is skipped.
 
 ``python -m qdnb dryrun`` (``qdnb.book.dryrun_report``) executes a notebook with
-``QDNB_DRYRUN`` naming a file; from then on, in that kernel:
+``QDNB_DRYRUN`` naming a file; from then on, in that kernel (the loops of ``qdnb.core.loops``
+and ``qdnb.qd.algorithms.run_seeds`` meet the dry run at one seam, ``driver()``: the
+``FullRun`` driver runs them as written, the ``DryRun`` one as below):
 
 - ``scan_in_chunks`` compiles its step as a one-step ``lax.scan`` (the chunk's own
   body), runs it once or twice, and returns the final carry with the step's outputs
@@ -397,3 +399,83 @@ def timed(
     record("call", name, full_steps=int(full_calls), steps_run=1, step_s=[seconds],
            compile_s=0.0, seconds_per_step=seconds, share=share)  # fmt: skip
     return out
+
+
+class FullRun:
+    """The driver of a loop outside a dry run: every step, every seed, loops side by side.
+
+    A loop asks ``driver()`` for its driver once and hands it what it would run; this
+    one runs it as given.  ``DryRun`` is the one seam where a dry run replaces that."""
+
+    concurrent = True  # independent loops may run side by side (``map_concurrently``)
+
+    def loop(
+        self,
+        name: str | None,
+        step: Callable[[Any], tuple[Any, Any]],
+        carry: Any,
+        num_steps: int,
+        run: Callable[[], tuple[Any, Any]],
+    ) -> tuple[Any, Any]:
+        """``run()``: the loop of ``num_steps`` applications of ``step`` from ``carry``,
+        as the caller wrote it (jitted chunks, checkpoints, progress)."""
+        return run()
+
+    def call(self, name: str, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)``: a one-shot program before a loop (its start, a first batch)."""
+        return fn(*args)
+
+    def seeds(
+        self,
+        name: str,
+        keys: jax.Array,
+        run: Callable[[jax.Array], Any],
+        spread: Callable[[Any, int], Any],
+    ) -> Any:
+        """``run(keys)``: one run per key, side by side (``spread`` is the dry run's)."""
+        return run(keys)
+
+
+class DryRun(FullRun):
+    """The driver of a loop in a dry run: its first steps at the run's shapes, timed."""
+
+    concurrent = False  # each loop timed alone
+
+    def loop(self, name, step, carry, num_steps, run):
+        """The step as a one-step scan, run once or twice (``scan``), not ``run``."""
+        return scan(step, carry, num_steps, name)
+
+    def call(self, name, fn, *args):
+        """``fn(*args)``, timed as the one call the full run makes (``timed``)."""
+        return timed(name, 1, fn, *args)
+
+    def seeds(self, name, keys, run, spread):
+        """One seed first.  When a step of all the seeds would take under
+        ``ALL_SEEDS_S``, they then run at once, as in the full run, and that is what is
+        recorded; otherwise the one seed stands for all of them (seeds side by side are
+        independent copies of the same shapes: its time and memory count once per seed;
+        on the QD-PG page five times one seed's step came to a median 1.0 times a step of
+        all five, ``bench/results/paper_dryrun_seed_scaling.json``) and ``spread(out,
+        num_seeds)`` repeats its results in every seed's slot.  Inside ``uncut``, or for
+        one seed, ``run(keys)``."""
+        num_seeds = len(keys)
+        if num_seeds == 1 or not cutting():
+            return run(keys)
+        with held_back() as one_seed, repeats(num_seeds, side_by_side=True):
+            out = run(keys[:1])
+        # the loop's steps (a start, compiled and run once, is not a step)
+        steps = [r["seconds_per_step"] for r in one_seed if r["kind"] in ("scan", "loop")]
+        if max(steps, default=0.0) * num_seeds <= ALL_SEEDS_S:
+            with uncut():
+                return run(keys)
+        count(f"{name}: seeds side by side", num_seeds, 1)
+        write(one_seed)
+        return spread(out, num_seeds)
+
+
+FULL_RUN = FullRun()
+
+
+def driver() -> FullRun:
+    """The driver a loop runs under: ``DryRun`` in a dry run, else ``FULL_RUN``."""
+    return DryRun() if active() is not None else FULL_RUN

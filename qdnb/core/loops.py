@@ -49,16 +49,32 @@ def scan_in_chunks(
     checkpoint, its progress bar starting there; the results equal an
     uninterrupted run's bit for bit.  A loop that stopped early saves its last
     checkpoint there, and a resumed one replays its restored outputs through ``stop``.
+
+    The loop runs under ``qdnb.core.dryrun.driver()``: as written here, or, in a dry
+    run, its first steps only.
     """
     if num_steps < 1 or chunk_size < 1:
         raise ValueError(
             f"num_steps and chunk_size must be positive, got {num_steps} and {chunk_size}"
         )
-    if dryrun.active() is not None:  # the first steps at these shapes, timed: qdnb.core.dryrun
-        carry, outputs = dryrun.scan(step, carry, num_steps, desc)
-        if chunk_seconds is not None:
-            chunk_seconds.append(0.0)
-        return carry, outputs
+    run = lambda: _run_chunks(
+        step, carry, num_steps, chunk_size, desc, progress, chunk_seconds, on_chunk, stop
+    )
+    return dryrun.driver().loop(desc, step, carry, num_steps, run)
+
+
+def _run_chunks(
+    step: Callable[[Any], tuple[Any, Any]],
+    carry: Any,
+    num_steps: int,
+    chunk_size: int,
+    desc: str | None,
+    progress: bool,
+    chunk_seconds: list[float] | None,
+    on_chunk: Callable[[int], None] | None,
+    stop: Callable[[Any], bool] | None,
+) -> tuple[Any, Any]:
+    """``scan_in_chunks``'s loop: every chunk run, saved and reported."""
     shape: list[Any] = []  # the per-step outputs' shapes, traced once if needed
 
     def output_shape() -> Any:
@@ -143,7 +159,7 @@ def map_concurrently(
     false.  For runs that share nothing (one per environment): XLA compiles and
     runs small programs on about one core each, so two such runs on two cores take
     little longer than one.  Each run's numbers do not depend on the threads."""
-    if not concurrent or dryrun.active() is not None:  # a dry run times each loop alone
+    if not concurrent or not dryrun.driver().concurrent:  # a dry run times each loop alone
         return {name: fn(name) for name in names}
     with ThreadPoolExecutor(max_workers=max(1, len(names))) as pool:
         futures = {name: pool.submit(fn, name) for name in names}

@@ -4,16 +4,17 @@
 ``episode_states`` plays policies for one episode each, as ``evaluate_policies`` does, and
 keeps what ``read`` takes of the state at every step (the simulator's generalised
 positions ``q`` by default; ``episode_path`` keeps a Point-Maze episode's state
-descriptors), held once an episode has ended; ``replay_states`` plays recorded actions
-instead. ``render`` draws the states with MuJoCo's own ``Renderer`` on the MuJoCo model brax
-built the task from (``env.brax_env.sys.mj_model``: the robot, the floor and, in the mazes,
-the walls, as they collide), off-screen through EGL (``MUJOCO_GL=egl``, set by ``qdnb``'s
-import: Mesa's software rasteriser draws it on a machine with no display or GPU).  The
-choice over brax's ``brax.io.image`` (pytinyrenderer, another package to pin, flat shading)
-is that this draws the model the simulation ran, with its materials and lights, and needs
-nothing beyond the MuJoCo brax already installs; ``bench/video.py`` measures it.  Without
-a working OpenGL, ``renderer_missing`` says why and the pages skip their robot videos,
-saying so.
+descriptors), held once an episode has ended; ``watched_episodes`` adds what each episode
+measured (its behaviour descriptor), so that an episode shown beside the descriptor it
+reached is played once; ``replay_states`` plays recorded actions instead. ``render`` draws
+the states with MuJoCo's own ``Renderer`` on the MuJoCo model brax built the task from
+(``env.brax_env.sys.mj_model``: the robot, the floor and, in the mazes, the walls, as they
+collide), off-screen through EGL (``MUJOCO_GL=egl``, set by ``qdnb``'s import: Mesa's
+software rasteriser draws it on a machine with no display or GPU). The choice over brax's
+``brax.io.image`` (pytinyrenderer, another package to pin, flat shading) is that this
+draws the model the simulation ran, with its materials and lights, and needs nothing
+beyond the MuJoCo brax already installs; ``bench/video.py`` measures it. Without a working
+OpenGL, ``renderer_missing`` says why and the pages skip their robot videos, saying so.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from qdnb.envs.base import Env
+from qdnb.envs.rollout import tally_start, tally_step
 
 
 def robot_q(state) -> jax.Array:
@@ -50,7 +52,20 @@ def episode_states(
     last once an episode has ended, and whether each state is still ``alive``
     ``(n, steps + 1)``."""
     steps = env.episode_length if length is None else length
-    return _states(env, lambda p, obs, t: policy_apply(p, obs), params, keys, steps, read)
+    qs, alive, _ = _states(env, lambda p, obs, t: policy_apply(p, obs), params, keys, steps, read)
+    return qs, alive
+
+
+def watched_episodes(
+    env: Env, policy_apply, params: Any, keys: jax.Array
+) -> tuple[np.ndarray, np.ndarray]:
+    """``episode_states`` of whole episodes with what each one measured: ``q`` at every
+    state ``(n, steps + 1, ...)`` and each episode's behaviour descriptor ``(n, d)`` as
+    ``evaluate_policies`` computes it from the same initial states (its tally), in the
+    same compiled call: an episode shown with the descriptor it reached is played once."""
+    act = lambda p, obs, t: policy_apply(p, obs)
+    qs, _, descriptors = _states(env, act, params, keys, env.episode_length, robot_q)
+    return qs, descriptors
 
 
 def episode_path(env: Env, policy_apply, params: Any, key: jax.Array) -> np.ndarray:
@@ -67,34 +82,39 @@ def replay_states(env: Env, actions: Any, keys: jax.Array) -> tuple[np.ndarray, 
     initial state row ``i`` of ``keys`` draws, action ``t`` at step ``t`` (a model that is
     not a policy network, the QDT say, is watched this way from the actions it played)."""
     actions = jnp.asarray(actions)
-    return _states(env, lambda a, obs, t: a[t], actions, keys, actions.shape[1], robot_q)
+    qs, alive, _ = _states(env, lambda a, obs, t: a[t], actions, keys, actions.shape[1], robot_q)
+    return qs, alive
 
 
 def _states(env: Env, act, rows: Any, keys: jax.Array, steps: int, read):
-    """``episode_states``' loop: ``act(row, obs, t)`` is row's action at step ``t``."""
+    """``episode_states``' loop: ``act(row, obs, t)`` is row's action at step ``t``;
+    ``read`` of every state, whether it is alive, and each episode's behaviour descriptor
+    (``evaluate_policies``' tally of the same steps)."""
 
     def one(row, key):
         def step(carry, t):
-            state, alive = carry
+            state, alive, tally = carry
             nxt = env.step(state, act(row, state.obs, t))
             alive = alive & ~state.done
-            return (nxt, alive), (read(nxt), alive & ~nxt.done)
+            tally, _ = tally_step(env, tally, nxt)
+            return (nxt, alive, tally), (read(nxt), alive & ~nxt.done)
 
         first = env.reset(key)
-        init = (first, jnp.ones((), bool))
-        _, (qs, alive) = jax.lax.scan(step, init, jnp.arange(steps))
+        init = (first, jnp.ones((), bool), tally_start(env, first))
+        (_, _, tally), (qs, alive) = jax.lax.scan(step, init, jnp.arange(steps))
         return (
             jnp.concatenate([read(first)[None], qs]),
             jnp.concatenate([jnp.ones(1, bool), alive]),
+            env.behaviour_descriptor(tally.last_sd, tally.sd_sum, tally.length),
         )
 
-    qs, alive = jax.device_get(jax.jit(jax.vmap(one))(rows, keys))
+    qs, alive, descriptors = jax.device_get(jax.jit(jax.vmap(one))(rows, keys))
     qs, alive = np.array(qs), np.array(alive)
     for q, a in zip(qs, alive):  # the state that ended an episode is its last: hold it
         ended = np.flatnonzero(~a)
         if ended.size:
             q[ended[0] + 1 :] = q[ended[0]]
-    return qs, alive
+    return qs, alive, np.asarray(descriptors)
 
 
 @functools.cache

@@ -270,13 +270,32 @@ def run_seeds(
     arrays have shape ``(num_seeds, num_iterations + 1, ...)``; entry 0 is the
     initial batch.
     """
-    if len(keys) > 1 and dryrun.cutting():
-        return _dry_run_seeds(
-            algorithm, keys, num_iterations=num_iterations, chunk_size=chunk_size,
-            track_bins=track_bins, target=target, progress=progress, desc=desc,
-            keep_evaluations=keep_evaluations, chunk_seconds=chunk_seconds,
-            on_chunk=on_chunk, stop=stop,
-        )  # fmt: skip
+    drive = dryrun.driver()  # every seed's every step, or a dry run's cut: qdnb.core.dryrun
+    run = lambda keys: _run_seeds(
+        algorithm, keys, drive, num_iterations=num_iterations, chunk_size=chunk_size,
+        track_bins=track_bins, target=target, progress=progress, desc=desc,
+        keep_evaluations=keep_evaluations, chunk_seconds=chunk_seconds,
+        on_chunk=on_chunk, stop=stop,
+    )  # fmt: skip
+    return drive.seeds(desc or "loop", keys, run, _one_seed_for_all)
+
+
+def _run_seeds(
+    algorithm: PolicySearch,
+    keys: jax.Array,
+    drive: dryrun.FullRun,
+    num_iterations: int,
+    chunk_size: int,
+    track_bins: tuple[int, ...] | None,
+    target: tuple[float, ...] | None,
+    progress: bool,
+    desc: str | None,
+    keep_evaluations: bool,
+    chunk_seconds: list[float] | None,
+    on_chunk: Callable[[int], None] | None,
+    stop: Callable[[dict[str, Any]], bool] | None,
+):
+    """``run_seeds``'s run of ``keys`` side by side, its one-shot programs under ``drive``."""
     env = algorithm.env
     low, high = env.descriptor_low, env.descriptor_high
     names: list[str] = []  # the state's parts (qdnb.core.health), seen when tracing
@@ -320,7 +339,7 @@ def run_seeds(
     if getattr(algorithm, "start", None) is not None:
         # the initial evaluation is the first step: one compiled program for the whole loop
         start = jax.jit(split(lambda k: (algorithm.start(k), new_track())))
-        carry = dryrun.timed(f"{desc or 'loop'}: start", 1, start, keys)
+        carry = drive.call(f"{desc or 'loop'}: start", start, keys)
         (states, tracks), history = scan_in_chunks(
             split(step),
             carry,
@@ -341,7 +360,7 @@ def run_seeds(
         return (state, track), out
 
     # (a dry run times it: compiled and run once, as in the full run)
-    carry, first = dryrun.timed(f"{desc or 'loop'}: initial batch", 1, jax.jit(split(init)), keys)
+    carry, first = drive.call(f"{desc or 'loop'}: initial batch", jax.jit(split(init)), keys)
     if stop is not None and stop(jax.tree.map(lambda f: f[None], first)):
         stop = lambda _: True  # the initial batch already met it: stop after one chunk
     (states, tracks), history = scan_in_chunks(
@@ -392,25 +411,10 @@ def stopped_by_nan(
     return rule
 
 
-def _dry_run_seeds(algorithm: PolicySearch, keys: jax.Array, **kwargs: Any) -> Any:
-    """``run_seeds`` in a dry run (``qdnb.core.dryrun``): one seed first.  When a step
-    of all the seeds would take under ``ALL_SEEDS_S``, they then run at once, as in the
-    full run, and that is what is recorded; otherwise the one seed stands for all of them
-    (seeds side by side are independent copies of the same shapes: its time and memory
-    count once per seed; on the QD-PG page five times one seed's step came to a median
-    1.0 times a step of all five, ``bench/results/paper_dryrun_seed_scaling.json``) and
-    its results are repeated in every seed's slot."""
-    num_seeds, desc = len(keys), kwargs["desc"]
-    with dryrun.held_back() as one_seed, dryrun.repeats(num_seeds, side_by_side=True):
-        out = run_seeds(algorithm, keys[:1], **kwargs)
-    # the loop's steps (the start, compiled and run once, is not a step)
-    steps = [r["seconds_per_step"] for r in one_seed if r["kind"] in ("scan", "loop")]
-    slow = max(steps, default=0.0)
-    if slow * num_seeds <= dryrun.ALL_SEEDS_S:
-        with dryrun.uncut():
-            return run_seeds(algorithm, keys, **kwargs)
-    dryrun.count(f"{desc or 'loop'}: seeds side by side", num_seeds, 1)
-    dryrun.write(one_seed)
+def _one_seed_for_all(out: Any, num_seeds: int) -> Any:
+    """A dry run's one seed standing for ``num_seeds`` (``qdnb.core.dryrun.DryRun.seeds``):
+    ``run_seeds``'s results with every seed's slot holding the one seed's.
+    """
     states, tracks, history = out
     # every seed's slot holds the one seed's results: the final states as read-only views
     # of it (at paper scale five copies of Chapter 4's states outgrow a 24 GB host), the

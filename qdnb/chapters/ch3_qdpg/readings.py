@@ -29,7 +29,8 @@ def exits_needed(num_seeds: int) -> int:
 AB_RESULTS = paths.ROOT / "bench" / "results" / "qdpg_ab.json"
 PEER_RESULTS = paths.ROOT / "bench" / "results" / "qdax_qdpg.json"
 PUBLISHED_POINTMAZE = paths.DATA / "published" / "paper" / "ch3_pointmaze" / "pointmaze-paper.json"
-# the A/B's variants as the page names them (bench/qdpg_ab.py's VARIANTS, in its order)
+# the A/B's variants as the page names them (bench/qdpg_ab.py's VARIANTS, in its order, then
+# its DIAGNOSTICS: run outside the early stop, to say which difference made a reading exit)
 READINGS = {
     "thesis-adam": "QD-PG, Adam (the A/B's base)",
     "sum": "Eq. 3.5's sum of the K distances",
@@ -37,6 +38,7 @@ READINGS = {
     "qdax-novelty": "QDax's novelty (mean squared distance, K = 5)",
     "qdax-greedy": "QDax's greedy actors, played",
     "exploration-noise": "the population plays with noise 0.1",
+    "squared-k10": "diagnostic: QDax's squared distance at K = 10",
 }
 
 

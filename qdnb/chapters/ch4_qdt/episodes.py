@@ -13,7 +13,7 @@ import numpy as np
 
 from qdnb.chapters.ch4_qdt.experiment import qdt_model
 from qdnb.chapters.ch4_reproducibility import ReproducibilityConfig
-from qdnb.envs.rollout import evaluate_policies
+from qdnb.envs.render import watched_episodes
 from qdnb.models.qdt.data import seed_repertoire
 from qdnb.models.qdt.evaluate import play
 from qdnb.nets.mlp import MLP
@@ -29,14 +29,16 @@ class GoalEpisodes:
     """One episode per goal of seed 0's QDT(ME-LS) conditioned on it and of its
     ``demonstrator`` (the kept ME-LS policy whose stored BD is nearest the goal, as the
     teachers' accuracy picks it), both from the initial state row ``i`` of ``starts``
-    draws: the ``actions`` each played (goals, T, A) and the BDs each ``reached`` (goals,
-    d), for ``render.replay_states`` to replay."""
+    draws, and the BDs each ``reached`` (goals, d): the QDT's ``actions`` (goals, T, A),
+    for ``render.replay_states`` to replay (a transformer is watched from the actions it
+    played), and the demonstrators' simulator states (goals, T + 1, q), their episodes
+    played once (``render.watched_episodes``)."""
 
     goals: np.ndarray
     starts: jax.Array
     qdt_actions: np.ndarray
     qdt_reached: np.ndarray
-    demonstrator_actions: np.ndarray
+    demonstrator_states: np.ndarray
     demonstrator_reached: np.ndarray
 
 
@@ -55,19 +57,23 @@ def goal_episodes(
         raise ValueError(f"{res.env_name}: seed 0's QDT(ME-LS) was not trained")
     env = repro_cfg.make_env(res.env_name)
     goals = jnp.asarray(res.goals[np.asarray(goal_ids)])
-    ev = play(env, qdt_model(cfg, env), res.watched, goals, key, 1)  # starts: split(key, G)
+    # one compiled program (played eagerly, the QDT's prefill and the resets run op by op)
+    ev = jax.jit(play, static_argnums=(0, 1, 5))(
+        env, qdt_model(cfg, env), res.watched, goals, key, 1
+    )
     teachers = seed_repertoire(repertoires["ME-LS"], 0)
     kept = np.zeros(len(teachers.descriptors), bool)  # the cells the QDT's data kept
     kept[np.asarray(res.selection["ME-LS"][0].cells)] = True
     nearest = nearest_cells(teachers.descriptors, goals, jnp.asarray(kept))
     demonstrator = jax.tree.map(lambda x: x[nearest], teachers.genotypes)
     network = MLP(repro_cfg.policy_hidden + (env.action_size,))
-    shown = evaluate_policies(env, network.apply, demonstrator, key, return_trajectory=True)
-    return GoalEpisodes(  # the same starts: split(key, G)
+    starts = jax.random.split(key, len(goals))  # the QDT's: play's resets
+    states, reached = watched_episodes(env, network.apply, demonstrator, starts)
+    return GoalEpisodes(
         np.asarray(goals),
-        jax.random.split(key, len(goals)),
+        starts,
         np.asarray(ev.trajectory[:, 0]),
         np.asarray(ev.descriptor[:, 0]),
-        np.asarray(shown.trajectory["action"]),
-        np.asarray(shown.descriptor),
+        states,
+        reached,
     )
