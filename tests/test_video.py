@@ -159,6 +159,19 @@ class Slider(Env):
         return EnvState(Core(q), q, jnp.zeros(()), q[0] > 2.5, q, state.steps + 1)
 
 
+@dataclass(frozen=True)
+class KeyedSlider(Slider):
+    """A ``Slider`` starting where its key draws it, described by its mean position over
+    the states its steps started from (a time-averaged descriptor)."""
+
+    def reset(self, key):
+        q = jax.random.uniform(key, (1,), minval=-1.0, maxval=1.0)
+        return EnvState(Core(q), q, jnp.zeros(()), jnp.zeros((), bool), q, jnp.int32(0))
+
+    def behaviour_descriptor(self, last_state_descriptor, state_descriptor_sum, length):
+        return state_descriptor_sum / jnp.maximum(length, 1)
+
+
 def test_an_episode_path_holds_its_last_state_once_the_episode_has_ended():
     from qdnb.envs.render import episode_path
 
@@ -214,6 +227,13 @@ def test_a_watched_episode_is_the_evaluated_one_with_its_states_and_its_descript
     # the first ends past 2.5 at its third step, the others play all five
     assert reached[:, 0].tolist() == [3.0, 2.5, -3.75]
     assert np.array_equal(reached, np.asarray(evaluated.descriptor))
+    # starts drawn from the keys, and a time-averaged descriptor: still the evaluated ones
+    keyed = KeyedSlider(5)
+    qs, reached = watched_episodes(keyed, apply, speeds, jax.random.split(key, 3))
+    evaluated = evaluate_policies(keyed, apply, speeds, key)
+    assert len(set(qs[:, 0, 0].tolist())) == 3  # three different starts
+    np.testing.assert_allclose(reached, np.asarray(evaluated.descriptor), rtol=1e-6)
+    assert not np.allclose(reached[:, 0], qs[:, -1, 0])  # an average, not the last state
 
 
 def test_a_mark_keeps_its_size_on_screen_as_the_camera_backs_away():
